@@ -1,0 +1,81 @@
+"""Depth precision: two parallel planes 1e-4 apart in relative depth, far / near = 1e6.
+
+With ``reverse_z=True`` (NDC z ~ -near/d: float32 keeps its relative precision for 1/d) the
+nearer plane wins everywhere, in float32 throughout (world positions, matrices, clip
+positions, rasterizer). With the standard projection (NDC z ~ 1 - 2 near/d) both planes round
+to the same float32 depth at that range, and the test documents that it then shows the wrong
+plane on some pixels: the reason reverse-Z exists.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import torchraster as tr
+
+NEAR, FAR = 0.01, 1e4  # far / near = 1e6
+DIST = 1000.0  # distance of the nearer plane (at 1/10 of the far plane)
+GAP = 1e-4  # relative depth gap between the two planes
+RES = (32, 32)
+FOV = 50.0
+
+
+def _two_planes(far: float, reverse_z: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """Clip positions (1, 8, 4) float32 of two parallel, slightly tilted quads, the farther one
+    listed FIRST (faces 0, 1) so the lower-index tie-break would pick the wrong one; faces
+    2, 3 are the nearer quad."""
+    quads = []
+    for d in (DIST * (1 + GAP), DIST):  # far quad first
+        half = 1.5 * d * math.tan(math.radians(FOV) / 2)
+        xy = torch.tensor([[-half, -half], [half, -half], [half, half], [-half, half]])
+        z = -d + 0.05 * xy[:, 0] + 0.03 * xy[:, 1]  # tilted; the same tilt for both
+        quads.append(torch.cat([xy, z[:, None]], -1))
+    verts = torch.cat(quads).float()[None]
+    view = tr.camera.look_at([0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0])
+    proj = tr.camera.perspective(FOV, 1.0, NEAR, far, reverse_z=reverse_z)
+    clip = tr.camera.transform_points(verts, proj @ view)
+    assert clip.dtype == torch.float32
+    faces = torch.tensor([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    return clip, faces
+
+
+def _wrong_fraction(far: float, reverse_z: bool) -> float:
+    clip, faces = _two_planes(far, reverse_z)
+    fid = tr.rasterize(clip, faces, resolution=RES).face_id
+    assert (fid >= 0).all()
+    return float((fid < 2).float().mean())
+
+
+@pytest.mark.parametrize("far", [FAR, math.inf])
+def test_reverse_z_resolves_1e4_relative_gap_at_1e6_range(far: float) -> None:
+    assert _wrong_fraction(far, reverse_z=True) == 0.0
+
+
+def test_standard_projection_fails_at_this_range() -> None:
+    """Expected failure of the STANDARD projection, asserted: some pixels show the far plane."""
+    assert _wrong_fraction(FAR, reverse_z=False) > 0.05
+
+
+def test_reverse_z_depth_values() -> None:
+    """frags.depth follows the reverse-Z mapping: -1 at near, 0 at far, z_ndc = n(d-f)/(d(f-n))
+    (-n/d for an infinite far plane), evaluated at the analytic view depth of each pixel."""
+    for far in (FAR, math.inf):
+        clip, faces = _two_planes(far, True)
+        frags = tr.rasterize(clip.double(), faces, resolution=RES)
+        w = RES[0]
+        c = (2 * (torch.arange(w, dtype=torch.float64) + 0.5) / w - 1) * math.tan(
+            math.radians(FOV) / 2
+        )
+        cy, cx = torch.meshgrid(-c, c, indexing="ij")  # view-space ray slopes (row 0 = top)
+        # ray (cx, cy, -1) * d hits z = -D + 0.05 x + 0.03 y  ->  d = D / (1 + 0.05 cx + 0.03 cy)
+        d = DIST / (1 + 0.05 * cx + 0.03 * cy)
+        if math.isinf(far):
+            z_ref = -NEAR / d
+        else:
+            z_ref = NEAR * (d - far) / (d * (far - NEAR))
+        rel = ((frags.depth[0] - z_ref) / z_ref).abs().max()
+        assert rel < 1e-5, (far, float(rel))  # float32 vertices and matrices
+        assert (frags.depth[0] < 0).all() and (frags.depth[0] > -1).all()

@@ -1,0 +1,212 @@
+"""Watertightness: shared edges through pixel centres are covered exactly once (top-left rule),
+and closed meshes show no cracks from any view.
+
+Exact cases are built from dyadic NDC coordinates (pixel centres of power-of-two resolutions)
+and power-of-two w, so every vertex projects exactly onto a pixel centre and pixel centres lie
+exactly on the shared edges. Each face is also rasterized alone (one batch item per face, via
+``face_ranges``) to count how many faces cover every pixel centre.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import trimesh
+from reference_raster import load_mesh, look_at_matrix, perspective_matrix, to_clip
+
+import torchraster as tr
+
+
+def _ndc(i: torch.Tensor, j: torch.Tensor, h: int, w: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """NDC of pixel (row i, col j) centres (exact for power-of-two sizes)."""
+    return 2 * (j + 0.5) / w - 1, 1 - 2 * (i + 0.5) / h
+
+
+def _lift(xy: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+    """(V,2) NDC -> (1,V,4) clip with random power-of-two w and random depth, exact."""
+    n = xy.shape[0]
+    w = 2.0 ** torch.randint(-2, 3, (n,), generator=gen).double()
+    z = (torch.rand(n, generator=gen, dtype=torch.float64) - 0.5) * w
+    return torch.stack([xy[:, 0] * w, xy[:, 1] * w, z, w], -1)[None]
+
+
+def _grid(h: int, w: int, step: int, flip: bool) -> tuple[torch.Tensor, torch.Tensor, tuple]:
+    """Vertices on every ``step``-th pixel centre (rows/cols 1..), quads split by diagonals
+    alternating direction (all edges pass through pixel centres). Returns xy (V,2), faces (F,3)
+    CCW, and the covered pixel-index box (i0, i1, j0, j1) (inclusive, on the boundary)."""
+    rows = torch.arange(1, h - 1, step)
+    cols = torch.arange(1, w - 1, step)
+    ii, jj = torch.meshgrid(rows, cols, indexing="ij")
+    x, y = _ndc(ii.double(), jj.double(), h, w)
+    xy = torch.stack([x.reshape(-1), y.reshape(-1)], -1)
+    nr, nc = len(rows), len(cols)
+    faces = []
+    for r in range(nr - 1):
+        for c in range(nc - 1):
+            a, b = r * nc + c, r * nc + c + 1  # top-left, top-right (row r is above row r+1)
+            d, e = (r + 1) * nc + c, (r + 1) * nc + c + 1  # bottom-left, bottom-right
+            if (r + c + flip) % 2:
+                faces += [[a, d, e], [a, e, b]]
+            else:
+                faces += [[a, d, b], [b, d, e]]
+    box = (int(rows[0]), int(rows[-1]), int(cols[0]), int(cols[-1]))
+    return xy, torch.tensor(faces), box
+
+
+def _fan(h: int, w: int) -> tuple[torch.Tensor, torch.Tensor, None]:
+    """A closed fan around the centre pixel with spokes of many slopes (0, 1/3, 1/2, 1, 2, 3,
+    inf ...), all ending on pixel centres."""
+    ci, cj = h // 2, w // 2
+    offs = [(0, 6), (2, 6), (3, 6), (6, 6), (6, 3), (6, 2), (6, 0), (6, -2), (6, -3), (6, -6),
+            (3, -6), (2, -6), (0, -6), (-2, -6), (-3, -6), (-6, -6), (-6, -3), (-6, -2),
+            (-6, 0), (-6, 2), (-6, 3), (-6, 6), (-3, 6), (-2, 6)]
+    ij = torch.tensor([(ci, cj)] + [(ci - di, cj + dj) for di, dj in offs], dtype=torch.float64)
+    x, y = _ndc(ij[:, 0], ij[:, 1], h, w)
+    n = len(offs)
+    faces = torch.tensor([[0, 1 + k, 1 + (k + 1) % n] for k in range(n)])
+    return torch.stack([x, y], -1), faces, None
+
+
+def _coverage_counts(clip: torch.Tensor, faces: torch.Tensor, res: tuple[int, int], **kw):
+    """(H,W) number of faces covering each pixel when each face is rasterized alone, and the
+    (H,W) face_id of the whole mesh rasterized at once."""
+    nf = faces.shape[0]
+    ranges = torch.stack([torch.arange(nf), torch.arange(nf) + 1], -1)
+    alone = tr.rasterize(clip.expand(nf, -1, -1), faces, resolution=res, face_ranges=ranges, **kw)
+    counts = (alone.face_id >= 0).sum(0)
+    whole = tr.rasterize(clip, faces, resolution=res, **kw).face_id[0]
+    return counts, whole
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize(
+    "shape", [("grid", 2, False), ("grid", 2, True), ("grid", 3, False), ("grid", 4, True),
+              ("fan",)]
+)
+def test_shared_edges_through_pixel_centres_cover_once(shape: tuple, dtype: torch.dtype) -> None:
+    h, w = 32, 32
+    gen = torch.Generator().manual_seed(sum(map(ord, str(shape))))
+    xy, faces, box = _grid(h, w, shape[1], shape[2]) if shape[0] == "grid" else _fan(h, w)
+    for winding in (faces, faces[:, [0, 2, 1]]):  # front and back facing
+        clip = _lift(xy, gen).to(dtype)
+        counts, whole = _coverage_counts(clip, winding, (h, w))
+        assert counts.max() <= 1, "a pixel centre on a shared edge was covered twice"
+        assert torch.equal(whole >= 0, counts == 1)
+        if box is not None:  # every pixel strictly inside the grid is covered exactly once
+            i0, i1, j0, j1 = box
+            assert (counts[i0 + 1 : i1, j0 + 1 : j1] == 1).all(), "crack inside the grid"
+            outside = torch.ones_like(counts, dtype=torch.bool)
+            outside[i0 : i1 + 1, j0 : j1 + 1] = False
+            assert (counts[outside] == 0).all()
+        else:  # the fan's interior: the star polygon around the centre, radius >= 6 px
+            ci, cj = h // 2, w // 2
+            assert (counts[ci - 5 : ci + 6, cj - 5 : cj + 6] == 1).all(), "crack in the fan"
+
+
+@pytest.mark.parametrize("edge", ["horizontal", "vertical", "diagonal", "antidiagonal"])
+def test_top_left_rule_pixel_on_shared_edge(edge: str) -> None:
+    """Two triangles sharing one edge that runs exactly through a line of pixel centres:
+    every pixel centre on that edge is covered by exactly one of them, in both windings and
+    with the triangles listed in both orders."""
+    h = w = 16
+    a, b = {
+        "horizontal": ((8, 1), (8, 14)),
+        "vertical": ((1, 8), (14, 8)),
+        "diagonal": ((1, 1), (14, 14)),
+        "antidiagonal": ((1, 14), (14, 1)),
+    }[edge]
+    # apexes on either side of the edge, perpendicular through its midpoint
+    mi, mj = (a[0] + b[0]) / 2, (a[1] + b[1]) / 2
+    di, dj = b[0] - a[0], b[1] - a[1]
+    p = (mi - dj * 0.4, mj + di * 0.4)
+    q = (mi + dj * 0.4, mj - di * 0.4)
+    ij = torch.tensor([a, b, p, q], dtype=torch.float64)
+    x, y = _ndc(ij[:, 0], ij[:, 1], h, w)
+    clip = torch.stack([x, y, torch.zeros_like(x), torch.ones_like(x)], -1)[None].float()
+    on_edge = [(a[0] + t * (1 if di > 0 else -1 if di < 0 else 0),
+                a[1] + t * (1 if dj > 0 else -1 if dj < 0 else 0))
+               for t in range(0, max(abs(di), abs(dj)) + 1)]
+    for faces in ([[0, 1, 2], [1, 0, 3]], [[1, 0, 3], [0, 1, 2]],
+                  [[0, 2, 1], [1, 3, 0]]):  # CCW / CW depending on orientation; either order
+        counts, whole = _coverage_counts(clip, torch.tensor(faces), (h, w))
+        assert counts.max() <= 1
+        for i, j in on_edge[1:-1]:  # interior points of the shared edge
+            assert counts[i, j] == 1, (edge, faces, i, j)
+            assert whole[i, j] >= 0
+
+
+def _holes(face_id: torch.Tensor) -> torch.Tensor:
+    """(B,) number of empty pixels whose 4-neighbours are all covered (cracks)."""
+    cov = face_id >= 0
+    inner = cov[:, 1:-1, 1:-1]
+    nb = cov[:, :-2, 1:-1] & cov[:, 2:, 1:-1] & cov[:, 1:-1, :-2] & cov[:, 1:-1, 2:]
+    return (~inner & nb).sum((1, 2))
+
+
+def _views(verts: torch.Tensor, n: int, seed: int, dist: tuple[float, float]) -> torch.Tensor:
+    gen = torch.Generator().manual_seed(seed)
+    clips = []
+    for _ in range(n):
+        d = torch.randn(3, generator=gen, dtype=torch.float64)
+        r = dist[0] + (dist[1] - dist[0]) * torch.rand(1, generator=gen).item()
+        eye = d / d.norm() * r
+        up = torch.randn(3, generator=gen, dtype=torch.float64)
+        fov = 30 + 40 * torch.rand(1, generator=gen).item()
+        mat = perspective_matrix(fov, 1.0, 0.05, 50.0) @ look_at_matrix(eye, 0 * eye, up)
+        clips.append(to_clip(verts, mat))
+    return torch.stack(clips).float()
+
+
+def _assert_no_holes(verts: torch.Tensor, faces: torch.Tensor, res: int, n: int, seed: int):
+    clip = _views(verts, n, seed, (1.6, 4.0))
+    for cull in (False, True):
+        fid = tr.rasterize(clip, faces, resolution=(res, res), cull_backfaces=cull).face_id
+        assert ((fid >= 0).float().mean((1, 2)) > 0.02).all()
+        holes = _holes(fid)
+        assert (holes == 0).all(), f"cracks per view (cull={cull}): {holes.tolist()}"
+    # close views cut by the near plane: the inside shows through, still without cracks
+    clip = _views(verts, 2, seed + 1, (0.3, 0.6))
+    fid = tr.rasterize(clip, faces, resolution=(res, res)).face_id
+    assert (_holes(fid) == 0).all()
+
+
+@pytest.mark.parametrize("subdiv", [1, 3])
+def test_icosphere_has_no_cracks(subdiv: int) -> None:
+    ico = trimesh.creation.icosphere(subdivisions=subdiv)
+    verts = torch.as_tensor(ico.vertices, dtype=torch.float64)
+    faces = torch.as_tensor(ico.faces, dtype=torch.int64)
+    _assert_no_holes(verts, faces, 96, 6, seed=subdiv)
+
+
+def test_fandisk_has_no_cracks(shared_data) -> None:
+    verts, faces = load_mesh(str(shared_data / "meshes/fandisk.obj"))
+    _assert_no_holes(verts, faces, 128, 4, seed=7)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["armadillo-50k.obj", "fandisk.obj"])
+def test_closed_meshes_have_no_cracks_many_views(shared_data, name: str) -> None:
+    verts, faces = load_mesh(str(shared_data / "meshes" / name))
+    _assert_no_holes(verts, faces, 256, 24, seed=11)
+
+
+def test_hole_detector_detects_a_missing_face() -> None:
+    """Guard for the crack criterion: removing one (sub-pixel) face of a dense icosphere
+    leaves a one-pixel hole."""
+    ico = trimesh.creation.icosphere(subdivisions=4)
+    verts = torch.as_tensor(ico.vertices, dtype=torch.float64)
+    faces = torch.as_tensor(ico.faces, dtype=torch.int64)
+    eye = torch.tensor([0.0, 0.0, 2.5], dtype=torch.float64)
+    mat = perspective_matrix(40.0, 1.0, 0.1, 10.0) @ look_at_matrix(
+        eye, 0 * eye, torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    )
+    clip = to_clip(verts, mat)[None].float()
+    fid = tr.rasterize(clip, faces, resolution=(64, 64), cull_backfaces=True).face_id
+    counts = torch.bincount(fid[fid >= 0], minlength=faces.shape[0])
+    inner = fid[0, 2:-2, 2:-2]
+    single = [int(f) for f in inner[inner >= 0].unique() if counts[f] == 1]  # 1-pixel faces
+    assert len(single) > 10
+    keep = torch.ones(faces.shape[0], dtype=torch.bool)
+    keep[single[len(single) // 2]] = False
+    fid2 = tr.rasterize(clip, faces[keep], resolution=(64, 64), cull_backfaces=True).face_id
+    assert _holes(fid).sum() == 0 and _holes(fid2).sum() > 0

@@ -1,0 +1,71 @@
+"""Argument checks that turn bad input into one clear error naming the argument.
+
+Every public function validates its inputs here before any torch op runs, so a user never
+sees a traceback from deep inside torch for a wrong shape, dtype or value.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+
+
+def check_tensor(
+    name: str,
+    value: object,
+    shape: Sequence[int | str | None],
+    *,
+    floating: bool = False,
+    integer: bool = False,
+    finite: bool = False,
+) -> torch.Tensor:
+    """Check that ``value`` is a tensor of the given rank and sizes.
+
+    ``shape`` holds one entry per dimension: an int (that exact size), a str (a named size,
+    only documented in the message) or None (any size). Returns the tensor unchanged.
+    Raises ``TypeError`` / ``ValueError`` with a message that names ``name``.
+    """
+    if not isinstance(value, torch.Tensor):
+        raise TypeError(f"{name}: expected a torch.Tensor, got {type(value).__name__}")
+    want = "(" + ", ".join("?" if s is None else str(s) for s in shape) + ")"
+    if value.dim() != len(shape):
+        raise ValueError(f"{name}: expected shape {want}, got {tuple(value.shape)}")
+    for dim, (got, exp) in enumerate(zip(value.shape, shape)):
+        if isinstance(exp, int) and got != exp:
+            raise ValueError(
+                f"{name}: expected shape {want}, got {tuple(value.shape)} (dim {dim} must be {exp})"
+            )
+    if floating and not value.is_floating_point():
+        raise TypeError(f"{name}: expected a floating-point tensor, got {value.dtype}")
+    if integer and (value.is_floating_point() or value.is_complex() or value.dtype == torch.bool):
+        raise TypeError(f"{name}: expected an integer tensor, got {value.dtype}")
+    if finite and value.is_floating_point() and value.numel() and not bool(
+        torch.isfinite(value).all()
+    ):
+        bad = int((~torch.isfinite(value)).sum())
+        raise ValueError(f"{name}: contains {bad} NaN/Inf value(s); all values must be finite")
+    return value
+
+
+def check_resolution(resolution: object, name: str = "resolution") -> tuple[int, int]:
+    """Check an ``(H, W)`` pair of positive ints and return it as a tuple."""
+    if isinstance(resolution, int):
+        resolution = (resolution, resolution)
+    try:
+        h, w = (int(v) for v in resolution)  # type: ignore[union-attr]
+        ok = all(float(v) == int(v) for v in resolution)  # type: ignore[union-attr]
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected (H, W) positive integers, got {resolution!r}") from None
+    if not ok or h <= 0 or w <= 0:
+        raise ValueError(f"{name}: expected (H, W) positive integers, got {resolution!r}")
+    return h, w
+
+
+def check_same_batch(**tensors: torch.Tensor) -> int:
+    """Check that all given tensors share the leading batch size; return it."""
+    sizes = {name: t.shape[0] for name, t in tensors.items()}
+    distinct = set(sizes.values())
+    if len(distinct) > 1:
+        raise ValueError(f"batch sizes differ: {sizes}")
+    return distinct.pop()

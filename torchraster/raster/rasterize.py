@@ -1,0 +1,308 @@
+"""Visibility: the public ``rasterize`` (see DESIGN.md, "Public contract").
+
+Visibility first, attributes second:
+
+1. *no grad*: triangles are clipped, culled and projected (``clip.py``), binned into pixel
+   blocks (``binning.py``), every block's pixel centres are tested against the three edge
+   functions, and covered candidates are depth-resolved with one ``scatter_reduce(amin)``
+   per chunk over a 64-bit key (depth bits << 32 | face index): nearest wins, exact ties go
+   to the lower face index, independently of processing order;
+2. *differentiable*: for each covered pixel the perspective-correct barycentrics of the
+   winning face are recomputed from its clip-space vertices with 2-D homogeneous edge
+   functions (no divide by w, valid for faces crossing the near plane), so gradients flow
+   to ``clip_pos`` through ``Fragments.bary`` and ``Fragments.depth``.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .._validate import check_resolution, check_tensor
+from .binning import Records, TriangleSetup, bin_triangles, setup_triangles
+from .clip import clip_and_project, outcodes, project
+
+DEFAULT_TILE = 16
+DEFAULT_MEMORY_BUDGET = 64 * 2**20  # bytes of temporaries per chunk of pixel candidates
+_BYTES_PER_CANDIDATE = 24  # float E + bool masks + depth + int64 flat index, roughly
+_EMPTY_KEY = torch.iinfo(torch.int64).max
+
+
+class Fragments:
+    """Per-pixel visibility of one ``rasterize`` call (channels last).
+
+    face_id: (B, H, W) int64 index into faces, -1 where nothing is covered
+    bary:    (B, H, W, 3) perspective-correct barycentrics of the visible face, 0 where empty;
+             differentiable with respect to clip_pos
+    depth:   (B, H, W) NDC z of the visible surface, +inf where empty; differentiable
+    bary_dx, bary_dy: (B, H, W, 3) derivatives of ``bary`` per pixel step (x = one column
+             right, y = one row down); only with ``rasterize(..., derivatives=True)``
+    mask:    (B, 1, H, W) float coverage (image layout)
+
+    Packed form (what ``interpolate`` uses; N = covered pixels): ``pixels`` (N,) flat index
+    b*H*W + i*W + j, ``items`` (N,) batch item, ``corners`` (3, N) vertex ids of the visible
+    face, ``bary_packed`` (N, 3), ``depth_packed`` (N,), and with derivatives
+    ``bary_dx_packed`` / ``bary_dy_packed`` (N, 3). The full (B, H, W, ...) tensors are
+    built on first access.
+    """
+
+    def __init__(self, face_id, pixels, items, corners, bary_packed, depth_packed,
+                 bary_dx_packed=None, bary_dy_packed=None):
+        self.face_id = face_id
+        self.pixels = pixels
+        self.items = items
+        self.corners = corners
+        self.bary_packed = bary_packed
+        self.depth_packed = depth_packed
+        self.bary_dx_packed = bary_dx_packed
+        self.bary_dy_packed = bary_dy_packed
+        self._cache: dict[str, torch.Tensor] = {}
+
+    def _unpack(self, name: str, packed: torch.Tensor | None, fill: float):
+        if packed is None:
+            return None
+        if name not in self._cache:
+            b, h, w = self.face_id.shape
+            full = packed.new_full((b * h * w, *packed.shape[1:]), fill)
+            self._cache[name] = full.index_copy(0, self.pixels, packed).view(
+                b, h, w, *packed.shape[1:])
+        return self._cache[name]
+
+    @property
+    def bary(self) -> torch.Tensor:
+        return self._unpack("bary", self.bary_packed, 0.0)
+
+    @property
+    def depth(self) -> torch.Tensor:
+        return self._unpack("depth", self.depth_packed, float("inf"))
+
+    @property
+    def bary_dx(self) -> torch.Tensor | None:
+        return self._unpack("bary_dx", self.bary_dx_packed, 0.0)
+
+    @property
+    def bary_dy(self) -> torch.Tensor | None:
+        return self._unpack("bary_dy", self.bary_dy_packed, 0.0)
+
+    @property
+    def mask(self) -> torch.Tensor:
+        return (self.face_id >= 0).unsqueeze(1).to(self.bary_packed.dtype)
+
+
+def rasterize(
+    clip_pos: torch.Tensor,
+    faces: torch.Tensor,
+    resolution: tuple[int, int] | int,
+    cull_backfaces: bool = False,
+    face_ranges: torch.Tensor | None = None,
+    *,
+    derivatives: bool = False,
+    tile: int = DEFAULT_TILE,
+    memory_budget: int = DEFAULT_MEMORY_BUDGET,
+) -> Fragments:
+    """Rasterize triangles into per-pixel visibility.
+
+    clip_pos: (B, V, 4) float clip-space positions (OpenGL: visible iff w > 0 and
+        -w <= x, y, z <= w; NDC +x right, +y up).
+    faces: (F, 3) int64 vertex indices shared by the batch; counter-clockwise (in NDC) =
+        front facing.
+    resolution: (H, W) or an int for a square image. Pixel (row i, col j) samples NDC
+        x = 2(j + 0.5)/W - 1, y = 1 - 2(i + 0.5)/H (row 0 is the top).
+    cull_backfaces: drop clockwise (back-facing) triangles.
+    face_ranges: optional (B, 2) int64 [start, end): batch item b rasterizes only
+        faces[start:end] (packed batches of different meshes, see ``mesh.pack_meshes``).
+    derivatives: also return screen-space derivatives of the barycentrics (for mip-mapping
+        through ``interpolate(..., derivatives=True)``).
+    tile: tile size in pixels of the binning of large triangles (and the largest block of
+        small ones). memory_budget: bytes of temporaries per chunk; peak memory is about
+        this plus the frame buffers, whatever the triangle sizes.
+
+    Coverage follows a top-left fill rule (no double hits or cracks on shared edges);
+    nearest depth wins and exact ties go to the lower face index; triangles crossing the
+    near plane are clipped. Returns :class:`Fragments`.
+    """
+    clip_pos, faces, (h, w), face_ranges = _check_inputs(clip_pos, faces, resolution,
+                                                          face_ranges)
+    if int(tile) < 1:
+        raise ValueError(f"tile: expected a positive int, got {tile}")
+    b = clip_pos.shape[0]
+    max_candidates = max(1024, int(memory_budget) // _BYTES_PER_CANDIDATE)
+    keys = torch.full((b * h * w,), _EMPTY_KEY, dtype=torch.int64, device=clip_pos.device)
+    with torch.no_grad():
+        # Visibility runs in float32 (float64 for float64 input), whatever the input dtype.
+        pos = clip_pos.detach()
+        if pos.dtype != torch.float64:
+            pos = pos.float()
+        codes, screen_pos = outcodes(pos), project(pos, (h, w))
+        for batch_ids, face_ids in _triangle_chunks(b, faces.shape[0], face_ranges, pos.device,
+                                                    max_candidates // 8):
+            screen = clip_and_project(pos, screen_pos, codes, faces, face_ids, batch_ids,
+                                      (h, w), cull_backfaces)
+            if len(screen) == 0:
+                continue
+            setup = setup_triangles(screen)
+            for records in bin_triangles(setup, (h, w), int(tile), max_candidates):
+                _cover_records(setup, records, (h, w), keys)
+    return _fragments_from_keys(clip_pos, faces, keys, (b, h, w), derivatives)
+
+
+def _check_inputs(clip_pos, faces, resolution, face_ranges):
+    h, w = check_resolution(resolution)
+    check_tensor("clip_pos", clip_pos, ("B", "V", 4), floating=True)
+    check_tensor("faces", faces, ("F", 3), integer=True)
+    if clip_pos.shape[0] == 0:
+        raise ValueError("clip_pos: batch size must be at least 1")
+    faces = faces.to(device=clip_pos.device, dtype=torch.int64)
+    n_vert = clip_pos.shape[1]
+    if faces.numel() and (int(faces.min()) < 0 or int(faces.max()) >= n_vert):
+        raise ValueError(
+            f"faces: vertex indices must be in [0, {n_vert}) for clip_pos with V={n_vert}; "
+            f"got range [{int(faces.min())}, {int(faces.max())}]")
+    if not bool(torch.isfinite(clip_pos).all()):
+        bad = int((~torch.isfinite(clip_pos)).any(-1).sum())
+        raise ValueError(f"clip_pos: {bad} vertex position(s) contain NaN/Inf")
+    if faces.shape[0] >= 2**31:
+        raise ValueError("faces: at most 2**31 - 1 faces are supported")
+    if face_ranges is not None:
+        check_tensor("face_ranges", face_ranges, (clip_pos.shape[0], 2), integer=True)
+        face_ranges = face_ranges.to(device=clip_pos.device, dtype=torch.int64)
+        if bool(((face_ranges[:, 0] < 0) | (face_ranges[:, 1] > faces.shape[0])
+                 | (face_ranges[:, 0] > face_ranges[:, 1])).any()):
+            raise ValueError(
+                f"face_ranges: expected 0 <= start <= end <= F={faces.shape[0]} per row, got "
+                f"{face_ranges.tolist()}")
+    return clip_pos, faces, (h, w), face_ranges
+
+
+def _triangle_chunks(b: int, n_faces: int, face_ranges: torch.Tensor | None,
+                     device: torch.device, per_chunk: int):
+    """Yield (batch ids, face ids) of at most ``per_chunk`` (item, face) pairs."""
+    if face_ranges is None:
+        starts = torch.zeros(b, dtype=torch.int64, device=device)
+        counts = torch.full((b,), n_faces, dtype=torch.int64, device=device)
+    else:
+        starts, counts = face_ranges[:, 0], face_ranges[:, 1] - face_ranges[:, 0]
+    offsets = torch.cumsum(counts, 0) - counts
+    total = int(counts.sum())
+    for k0 in range(0, total, per_chunk):
+        k = torch.arange(k0, min(total, k0 + per_chunk), device=device)
+        batch_ids = torch.searchsorted(offsets, k, right=True) - 1
+        yield batch_ids, starts[batch_ids] + (k - offsets[batch_ids])
+
+
+def _depth_key(z: torch.Tensor) -> torch.Tensor:
+    """Order-preserving int64 from float depth: float32 bits, negatives' magnitude flipped."""
+    bits = z.to(torch.float32).view(torch.int32)
+    bits = bits ^ ((bits >> 31) & 0x7FFFFFFF)  # signed-int order now equals float order
+    return bits.to(torch.int64)
+
+
+def _cover_records(setup: TriangleSetup, rec: Records, resolution: tuple[int, int],
+                   keys: torch.Tensor) -> None:
+    """Test a chunk of kh x kw pixel blocks and depth-resolve the covered centres into keys.
+
+    Candidates are laid out (kh, kw, R) with the R records innermost, so every broadcast op
+    runs long contiguous inner loops however small the blocks are.
+    """
+    h, w = resolution
+    kh, kw, n_rec = rec.kh, rec.kw, rec.tri.numel()
+    tri = rec.tri
+    coef = setup.coef.index_select(1, tri)  # (17, R)
+    dtype, device = coef.dtype, coef.device
+    px = rec.x0.to(dtype) + torch.arange(kw, dtype=dtype, device=device)[:, None]  # (kw, R)
+    py = rec.y0.to(dtype) + torch.arange(kh, dtype=dtype, device=device)[:, None]  # (kh, R)
+    inside = None
+    for e in range(3):
+        ex = coef[e] * px
+        ey = coef[3 + e] * py + coef[6 + e]  # fixed op order: see binning.py
+        edge = torch.add(ey[:, None, :], ex[None, :, :]).ge_(coef[9 + e])
+        inside = edge if inside is None else inside.logical_and_(edge)
+    flat = inside.view(-1).nonzero().squeeze(1)
+    if flat.numel() == 0:
+        return
+    zx = coef[12] * (px - coef[14])
+    zy = coef[16] + coef[13] * (py - coef[15])
+    depth = torch.add(zy[:, None, :], zx[None, :, :]).view(-1).index_select(0, flat)
+    depth = depth.clamp_(-1.0, 1.0)
+    # flat = local * R + r; float64 floor division is exact here and faster than int64's.
+    local = ((flat.to(torch.float64) + 0.5) * (1.0 / n_rec)).long()
+    r = flat - local * n_rec
+    offsets = (torch.arange(kh, device=device)[:, None] * w
+               + torch.arange(kw, device=device)).view(-1)
+    base = setup.batch.index_select(0, tri) * (h * w) + rec.y0 * w + rec.x0
+    pixel = base.index_select(0, r) + offsets.index_select(0, local)
+    key = (_depth_key(depth) << 32) | setup.key_lo.index_select(0, tri).index_select(0, r)
+    keys.scatter_reduce_(0, pixel, key, reduce="amin")
+
+
+def _fragments_from_keys(clip_pos, faces, keys, shape, derivatives) -> Fragments:
+    """Decode face ids and recompute differentiable barycentrics and depth."""
+    b, h, w = shape
+    pixels = (keys != _EMPTY_KEY).nonzero().squeeze(1)
+    face = keys.index_select(0, pixels) & 0xFFFFFFFF
+    face_id = torch.full((b * h * w,), -1, dtype=torch.int64, device=keys.device)
+    face_id.index_copy_(0, pixels, face)
+    items = pixels // (h * w)
+    corners = faces.T.index_select(1, face)  # (3, N) local vertex ids, vertex-major
+    dtype = clip_pos.dtype
+    col = pixels % w
+    row = (pixels // w) - items * h
+    x_ndc = (2 * col + 1).to(dtype).mul_(1.0 / w).sub_(1.0)
+    y_ndc = (2 * row + 1).to(dtype).mul_(-1.0 / h).add_(1.0)
+    # Component-major gather: (4, B*V) -> (4, 3, N), every row a contiguous vector.
+    clip_t = clip_pos.permute(2, 0, 1).reshape(4, -1)
+    verts = clip_t.index_select(1, (corners + items * clip_pos.shape[1]).view(-1))
+    bary, depth, dbdx, dbdy = perspective_barycentrics(verts.view(4, 3, -1), x_ndc, y_ndc,
+                                                       derivatives)
+    frags = Fragments(face_id.view(b, h, w), pixels, items, corners, bary.T, depth)
+    if derivatives:  # per pixel step: d/d(col) = (2 / W) d/dx_ndc, d/d(row) = -(2 / H) d/dy_ndc
+        frags.bary_dx_packed = (dbdx * (2.0 / w)).T
+        frags.bary_dy_packed = (dbdy * (-2.0 / h)).T
+    return frags
+
+
+def _nonzero_or_one(t: torch.Tensor) -> torch.Tensor:
+    """``t`` with exact zeros replaced by 1: a safe denominator with finite gradients."""
+    return torch.where(t == 0, torch.ones_like(t), t)
+
+
+def perspective_barycentrics(
+    verts: torch.Tensor, x_ndc: torch.Tensor, y_ndc: torch.Tensor, derivatives: bool = False
+):
+    """Perspective-correct barycentrics and NDC depth of points in clip-space triangles.
+
+    verts: (4, 3, N) clip-space triangles, component-major ([x|y|z|w][vertex][triangle]);
+    x_ndc, y_ndc: (N,) NDC points. With homogeneous 2-D vertices v_i = (x_i, y_i, w_i) and
+    the pixel ray p = (x, y, 1), the unnormalised barycentrics are l_i = p . (v_j x v_k)
+    (Olano & Greer 1997, "Triangle scan conversion using 2D homogeneous coordinates");
+    b = l / sum(l). No divide by w, so it also holds for triangles crossing the near plane.
+    For float accuracy the frame is first sheared so that p = (0, 0, 1) (v_i -> (x_i - x w_i,
+    y_i - y w_i, w_i), determinant 1): then l_i = x'_j y'_k - y'_j x'_k from small, local
+    numbers.
+
+    Returns bary (3, N), depth (N,) = sum l z / sum l w, and with ``derivatives`` d bary /
+    d x_ndc and d bary / d y_ndc (each (3, N); else None). Degenerate triangles give finite
+    values (and gradients).
+    """
+    x, y, z, w = verts  # each (3, N)
+    xs = x - x_ndc * w
+    ys = y - y_ndc * w
+
+    def nxt(t):  # vertex rows (1, 2, 0)
+        return torch.cat([t[1:], t[:1]])
+
+    def prv(t):  # vertex rows (2, 0, 1)
+        return torch.cat([t[2:], t[:2]])
+
+    lam = nxt(xs) * prv(ys) - nxt(ys) * prv(xs)
+    total = _nonzero_or_one(lam.sum(0))
+    bary = lam / total
+    depth = (lam * z).sum(0) / _nonzero_or_one((lam * w).sum(0))
+    if not derivatives:
+        return bary, depth, None, None
+    # d l_i / d x_ndc = (v_j x v_k)_x = y_j w_k - w_j y_k (same for y); then
+    # d b_i = (d l_i - b_i d sum(l)) / sum(l).
+    dldx = nxt(y) * prv(w) - nxt(w) * prv(y)
+    dldy = nxt(w) * prv(x) - nxt(x) * prv(w)
+    dbdx = (dldx - bary * dldx.sum(0)) / total
+    dbdy = (dldy - bary * dldy.sum(0)) / total
+    return bary, depth, dbdx, dbdy

@@ -1,0 +1,45 @@
+"""Shading: BRDFs, shading models, lights and the deferred lighting pass.
+
+Submodules: ``brdf`` (GGX, Smith, Schlick, Lambert, Cook-Torrance), ``models`` (shading
+models by name), ``lights`` (batched lights + YAML schema), ``lighting`` (deferred pass).
+"""
+
+from torchraster.shading.brdf import (
+    MIN_ROUGHNESS,
+    cook_torrance,
+    d_ggx,
+    f_schlick,
+    fd_lambert,
+    v_smith_ggx_correlated,
+)
+from torchraster.shading.lighting import shade
+from torchraster.shading.lights import (
+    DirectionalLights,
+    LightConfig,
+    Lights,
+    PointLights,
+    SpotLights,
+    lights_from_config,
+    parse_lights,
+)
+from torchraster.shading.models import MODELS, Surface, get_model
+
+__all__ = [
+    "MIN_ROUGHNESS",
+    "MODELS",
+    "DirectionalLights",
+    "LightConfig",
+    "Lights",
+    "PointLights",
+    "SpotLights",
+    "Surface",
+    "cook_torrance",
+    "d_ggx",
+    "f_schlick",
+    "fd_lambert",
+    "get_model",
+    "lights_from_config",
+    "parse_lights",
+    "shade",
+    "v_smith_ggx_correlated",
+]

@@ -1,0 +1,587 @@
+"""Image-based lighting from an equirectangular HDR environment (split-sum approximation).
+
+Sources: Karis 2013, "Real Shading in Unreal Engine 4" (split sum, GGX importance sampling,
+DFG LUT); Filament, "Physically Based Rendering in Filament", section 5.3 (image based
+lights: roughness -> lod mapping, f90, multiple-scattering energy compensation after
+Fdez-Aguera 2019); Ramamoorthi & Hanrahan 2001, "An Efficient Representation for Irradiance
+Environment Maps" (9 SH coefficients); Colbert & Krivanek 2007, "GPU-Based Importance
+Sampling" (filtered importance sampling: sample lod from the sample's solid angle).
+
+Outgoing radiance at a surface point with normal n, view direction v (towards the eye),
+reflection r = reflect(-v, n)::
+
+    E    = f0 * A(n.v, rough) + f90 * B(n.v, rough)           # single-scatter DFG
+    spec = prefiltered(r, rough) * E * (1 + f0 (1 / (A + B) - 1))   # energy compensation
+    diff = (1 - metallic) albedo * irradiance(n) / pi * (1 - E)
+    out  = ao * (diff + spec)
+
+All directions are world space, y up; the environment's lat-long layout is that of
+:func:`torchraster.texture.latlong_uv` (image centre = -z). The environment can be rotated
+(``R``: an env-space direction d appears in the world at ``R d``) and scaled (intensity).
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+import torch
+import torch.nn.functional as F
+
+from torchraster._validate import check_tensor
+from torchraster.shading.brdf import MIN_ROUGHNESS, d_ggx, v_smith_ggx_correlated
+from torchraster.texture import (
+    _sample_levels,
+    build_mip_pyramid,
+    latlong_directions,
+    latlong_solid_angles,
+    latlong_uv,
+    sample_latlong,
+)
+
+__all__ = [
+    "MIN_N_DOT_V",
+    "NORMAL_EPS2",
+    "MIN_DFG_ALBEDO",
+    "FIS_LOD_BIAS",
+    "MIN_LEVEL_HEIGHT",
+    "Environment",
+    "yaw_rotation",
+    "sh_basis",
+    "sh_project",
+    "irradiance_sh",
+    "roughness_to_lod",
+    "lod_to_roughness",
+    "hammersley",
+    "prefilter_specular",
+    "dfg_lut",
+    "lookup_dfg",
+    "shade_ibl",
+]
+
+#: Floor on n.v (Filament clamps NoV to 1e-4): keeps the DFG lookup and the reflection
+#: well defined at grazing and back-facing views.
+MIN_N_DOT_V: float = 1e-4
+
+#: Squared length below which a normal / view vector counts as zero (|x| < 1e-6). A zero
+#: normal is shaded with the environment's mean irradiance (SH band 0) and no preferred
+#: direction; gradients stay finite ("double where").
+NORMAL_EPS2: float = 1e-12
+
+#: Floor on the directional albedo A + B in the energy compensation ``1 / (A + B)``. The
+#: smallest value in the table is ~0.4 (rough, grazing), so this only guards hostile LUTs.
+MIN_DFG_ALBEDO: float = 1e-4
+
+#: Extra lod for filtered importance sampling (Colbert & Krivanek 2007 use +1): reading one
+#: level blurrier than the sample's footprint hides the residual noise of few samples.
+FIS_LOD_BIAS: float = 1.0
+
+#: Smallest height of a prefiltered level / quadrature source (lat-long rows): even the
+#: roughness-1 lobe has features (a sun crossing the horizon of the lobe) that 8 rows
+#: (22 degree texels) interpolate with ~2 % error.
+MIN_LEVEL_HEIGHT: int = 32
+
+# Irradiance convolution factors A_l of the clamped cosine (Ramamoorthi & Hanrahan eq. 8).
+_A_L = (math.pi, 2.0 * math.pi / 3.0, math.pi / 4.0)
+# Real SH normalisation constants, bands 0..2.
+_C0, _C1, _C2, _C3, _C4 = 0.282095, 0.488603, 1.092548, 0.315392, 0.546274
+
+
+def _normalize(x: torch.Tensor) -> torch.Tensor:
+    """Unit vectors along dim 1; vectors shorter than 1e-6 become 0 (finite gradient)."""
+    sq = (x * x).sum(1, keepdim=True)
+    ok = sq > NORMAL_EPS2
+    inv = torch.rsqrt(torch.where(ok, sq, torch.ones_like(sq)))
+    return torch.where(ok, x * inv, torch.zeros_like(x))
+
+
+def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    return (a * b).sum(1, keepdim=True)
+
+
+def yaw_rotation(angle: float | torch.Tensor) -> torch.Tensor:
+    """Rotation about +y by ``angle`` radians (right-handed): ``(3, 3)`` or ``(B, 3, 3)``."""
+    a = torch.as_tensor(angle, dtype=torch.get_default_dtype())
+    c, s = torch.cos(a), torch.sin(a)
+    z, o = torch.zeros_like(a), torch.ones_like(a)
+    return torch.stack(
+        (torch.stack((c, z, s), -1), torch.stack((z, o, z), -1), torch.stack((-s, z, c), -1)), -2
+    )
+
+
+# ---------------------------------------------------------------------- spherical harmonics
+
+
+def sh_basis(d: torch.Tensor) -> torch.Tensor:
+    """The 9 real SH basis functions (bands 0-2) of directions ``(B, 3, ...)`` -> ``(B, 9, ...)``.
+
+    Band-2 terms are written as homogeneous quadratics (e.g. ``3z^2 - |d|^2``), so they
+    equal the usual forms for unit ``d`` and vanish for ``d = 0``.
+    """
+    x, y, z = d[:, 0], d[:, 1], d[:, 2]
+    r2 = x * x + y * y + z * z
+    return torch.stack(
+        (
+            torch.full_like(x, _C0),
+            _C1 * y,
+            _C1 * z,
+            _C1 * x,
+            _C2 * x * y,
+            _C2 * y * z,
+            _C3 * (3.0 * z * z - r2),
+            _C2 * x * z,
+            _C4 * (x * x - y * y),
+        ),
+        1,
+    )
+
+
+def sh_project(env: torch.Tensor) -> torch.Tensor:
+    """Project a lat-long radiance map ``(B, 3, He, We)`` onto 9 SH coefficients ``(B, 9, 3)``.
+
+    ``L_lm = sum_texels L(w) Y_lm(w) dw`` with the exact solid angle of each texel
+    (:func:`torchraster.texture.latlong_solid_angles`), i.e. exact for the piecewise
+    constant map.
+    """
+    check_tensor("env", env, ("B", 3, "He", "We"), floating=True)
+    he, we = env.shape[-2:]
+    dirs = latlong_directions(he, we, device=env.device, dtype=env.dtype)
+    w = latlong_solid_angles(he, we, device=env.device, dtype=env.dtype)  # (He, 1)
+    basis = sh_basis(dirs)[0] * w  # (9, He, We)
+    return torch.einsum("khw,bchw->bkc", basis, env)
+
+
+def irradiance_sh(sh: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
+    """Irradiance (W/m^2) from 9 SH radiance coefficients (Ramamoorthi & Hanrahan 2001).
+
+    Args:
+        sh: ``(B, 9, 3)`` coefficients from :func:`sh_project` (B may be 1).
+        n: ``(B, 3, H, W)`` normals (normalised here; a zero normal gives the mean
+            irradiance ``pi * L_00 * Y_00``).
+
+    Returns:
+        ``(B, 3, H, W)`` irradiance, clamped at 0 (order-2 ringing can dip below).
+    """
+    check_tensor("sh", sh, ("B", 9, 3), floating=True)
+    check_tensor("n", n, ("B", 3, "H", "W"), floating=True)
+    a = sh.new_tensor([_A_L[0]] + [_A_L[1]] * 3 + [_A_L[2]] * 5).view(1, 9, 1)
+    basis = sh_basis(_normalize(n))  # (B, 9, H, W)
+    e = torch.einsum("bkc,bkhw->bchw", (sh * a).expand(n.shape[0], -1, -1), basis)
+    return e.clamp_min(0.0)
+
+
+# --------------------------------------------------------------------- specular prefilter
+
+
+def roughness_to_lod(roughness: torch.Tensor, num_levels: int) -> torch.Tensor:
+    """Filament's mapping ``lod = (L - 1) * r (2 - r)`` (denser levels at low roughness)."""
+    r = roughness.clamp(0.0, 1.0)
+    return (num_levels - 1) * r * (2.0 - r)
+
+
+def lod_to_roughness(lod: float, num_levels: int) -> float:
+    """Inverse of :func:`roughness_to_lod`: ``r = 1 - sqrt(1 - lod / (L - 1))``."""
+    t = min(max(lod / max(num_levels - 1, 1), 0.0), 1.0)
+    return 1.0 - math.sqrt(1.0 - t)
+
+
+def hammersley(n: int, *, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """``(n, 2)`` Hammersley points ``(i / n, radical_inverse_2(i))`` in [0, 1)^2."""
+    i = torch.arange(n, dtype=torch.int64)
+    bits = torch.zeros(n, dtype=torch.float64)
+    scale, k = 0.5, i.clone()
+    while bool((k > 0).any()):
+        bits += (k & 1).double() * scale
+        k >>= 1
+        scale *= 0.5
+    return torch.stack(((i.double() + 0.5) / n, bits), -1).to(dtype)
+
+
+def _ggx_half_vectors(n: int, roughness: float, dtype: torch.dtype) -> torch.Tensor:
+    """GGX-distributed half vectors in the local frame (z = normal), ``(n, 3)`` (Karis)."""
+    xi = hammersley(n, dtype=torch.float64)
+    a = max(roughness, MIN_ROUGHNESS) ** 2
+    phi = 2.0 * math.pi * xi[:, 0]
+    cos_t = torch.sqrt((1.0 - xi[:, 1]) / (1.0 + (a * a - 1.0) * xi[:, 1]))
+    sin_t = torch.sqrt((1.0 - cos_t * cos_t).clamp_min(0.0))
+    return torch.stack((sin_t * torch.cos(phi), sin_t * torch.sin(phi), cos_t), -1).to(dtype)
+
+
+def _onb(nrm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Tangent frame of unit normals ``(B, 3, ...)`` (Duff et al. 2017, branchless)."""
+    x, y, z = nrm[:, 0], nrm[:, 1], nrm[:, 2]
+    sign = torch.where(z >= 0, torch.ones_like(z), -torch.ones_like(z))
+    a = -1.0 / (sign + z)
+    b = x * y * a
+    t = torch.stack((1.0 + sign * x * x * a, sign * b, -sign * x), 1)
+    bt = torch.stack((b, sign + y * y * a, -y), 1)
+    return t, bt
+
+
+def _lobe_width(roughness: float) -> float:
+    """Angular half-width (rad) of the reflected GGX lobe, ~1.3 alpha (n = v = r)."""
+    return 1.3 * max(roughness, MIN_ROUGHNESS) ** 2
+
+
+def _prefilter_quadrature(
+    src: torch.Tensor, roughness: float, height: int, max_elems: int = 2**21
+) -> torch.Tensor:
+    """Brute-force convolution ``sum_j L_j D(n.h_j) (n.l_j)^+ dw_j / sum_j D (n.l)^+ dw_j``
+    over every texel of ``src`` ``(B, 3, hs, ws)`` for the texel centres of an output map
+    ``(B, 3, height, 2 height)``. With n = v: ``n.h = sqrt((1 + n.l) / 2)``."""
+    b, _, hs, ws = src.shape
+    ds = latlong_directions(hs, ws, device=src.device, dtype=src.dtype).reshape(3, -1)
+    dw = latlong_solid_angles(hs, ws, device=src.device, dtype=src.dtype).expand(hs, ws)
+    dw = dw.reshape(-1)
+    lsrc = src.reshape(b, 3, -1)
+    no = latlong_directions(height, 2 * height, device=src.device, dtype=src.dtype)
+    no = no.reshape(3, -1).T  # (No, 3)
+    step = max(1, max_elems // ds.shape[1])
+    outs = []
+    for i in range(0, no.shape[0], step):
+        c = no[i : i + step] @ ds  # (n, Ns) = n.l
+        n_dot_h = torch.sqrt(((1.0 + c) * 0.5).clamp_min(0.0))
+        w = d_ggx(n_dot_h, roughness) * c.clamp_min(0.0) * dw
+        outs.append(torch.einsum("ns,bcs->bcn", w, lsrc) / w.sum(1))
+    return torch.cat(outs, -1).reshape(b, 3, height, 2 * height)
+
+
+def _prefilter_importance(
+    src_levels: list[torch.Tensor], roughness: float, height: int, samples: int, chunk: int
+) -> torch.Tensor:
+    """GGX importance sampling with filtered lookups (Karis 2013; Colbert & Krivanek 2007)."""
+    env = src_levels[0]
+    b, _, he, we = env.shape
+    omega_p = (2.0 * math.pi / we) * (math.pi / he)  # equator texel of level 0
+    h = height
+    nrm = latlong_directions(h, 2 * h, device=env.device, dtype=env.dtype)  # (1, 3, h, 2h)
+    t, bt = _onb(nrm)
+    hs = _ggx_half_vectors(samples, roughness, env.dtype).to(env.device)
+    n_dot_l = 2.0 * hs[:, 2] ** 2 - 1.0  # n = v: n.l = 2 (n.h)^2 - 1
+    keep = n_dot_l > 0
+    hs, n_dot_l = hs[keep], n_dot_l[keep]
+    pdf = d_ggx(hs[:, 2], roughness) / 4.0  # pdf(l) = D (n.h) / (4 v.h), n.h = v.h
+    lod = 0.5 * torch.log2(1.0 / (samples * pdf * omega_p)) + FIS_LOD_BIAS
+    acc = torch.zeros(b, 3, h, 2 * h, device=env.device, dtype=env.dtype)
+    for s0 in range(0, hs.shape[0], chunk):
+        hc = hs[s0 : s0 + chunk]  # (S, 3)
+        m = hc.shape[0]
+        half = (
+            t[:, :, None] * hc[:, 0].view(1, 1, m, 1, 1)
+            + bt[:, :, None] * hc[:, 1].view(1, 1, m, 1, 1)
+            + nrm[:, :, None] * hc[:, 2].view(1, 1, m, 1, 1)
+        )  # (1, 3, S, h, 2h)
+        ldir = 2.0 * hc[:, 2].view(1, 1, m, 1, 1) * half - nrm[:, :, None]
+        uv = latlong_uv(ldir.reshape(1, 3, m * h, 2 * h))
+        lods = lod[s0 : s0 + m].view(1, 1, m, 1, 1).expand(1, 1, m, h, 2 * h)
+        vals = _sample_levels(
+            src_levels, uv[:, 0], uv[:, 1], lods.reshape(1, 1, m * h, 2 * h), ("wrap", "clamp")
+        )  # (B, 3, m h, 2h)
+        w = n_dot_l[s0 : s0 + m].view(1, 1, m, 1, 1)
+        acc = acc + (vals.view(b, 3, m, h, 2 * h) * w).sum(2)
+    return acc / n_dot_l.sum()
+
+
+def prefilter_specular(
+    env: torch.Tensor,
+    *,
+    size: int = 64,
+    levels: int = 6,
+    samples: int = 64,
+    quadrature_budget: int = 2**25,
+    texels_per_lobe: float = 4.0,
+    chunk: int = 16,
+) -> list[torch.Tensor]:
+    """Prefiltered specular mip chain of a lat-long radiance map (Karis 2013, n = v = r).
+
+    Level k holds, for roughness ``lod_to_roughness(k, levels)``, the GGX-weighted mean
+    ``int L(l) D(n.h) (n.l)^+ dl / int D(n.h) (n.l)^+ dl`` around each texel direction n.
+    Two ways to compute a level, chosen per level:
+
+    * quadrature (exact for the source): the source is box-downsampled so that the lobe
+      width spans ``texels_per_lobe`` texels, and every output texel sums over every source
+      texel (two matrix products). Used when the source is that fine and
+      ``out_texels * src_texels <= quadrature_budget`` -- the rough levels, where the lobe
+      is wide and the sums are small.
+    * GGX importance sampling with ``samples`` Hammersley samples, each read from the
+      source's box mip pyramid at lod ``0.5 log2(Omega_s / Omega_p) + FIS_LOD_BIAS``
+      (filtered importance sampling) -- the sharp levels, where few texels matter.
+
+    Args:
+        env: ``(B, 3, He, We)`` lat-long radiance.
+        size: max height of the levels k >= 1 (each is ``h x 2h``, h chosen so that the
+            lobe half-width spans ``texels_per_lobe`` texels, between MIN_LEVEL_HEIGHT and
+            ``size``). Level 0 (roughness 0, a mirror) is the source itself.
+        levels: number of roughness levels (>= 2).
+        samples: GGX samples per texel for the importance-sampled levels.
+        quadrature_budget: max texel pairs for a quadrature level (time / memory knob).
+        texels_per_lobe: resolution of the levels and of the quadrature source, in texels
+            per lobe half-width.
+        chunk: samples evaluated at once (memory bound).
+
+    Returns:
+        list of ``levels`` tensors ``(B, 3, h_k, 2 h_k)``, differentiable w.r.t. ``env``.
+    """
+    check_tensor("env", env, ("B", 3, "He", "We"), floating=True)
+    for name, val, lo in (("size", size, 1), ("levels", levels, 2), ("samples", samples, 1)):
+        if int(val) != val or val < lo:
+            raise ValueError(f"{name}: expected an int >= {lo}, got {val!r}")
+    he = env.shape[-2]
+    src_levels: list[torch.Tensor] | None = None
+    out = [env]
+    for k in range(1, levels):
+        rough = lod_to_roughness(k, levels)
+        per_lobe = math.pi / _lobe_width(rough)  # lat-long rows per lobe half-width
+        h = int(min(size, max(MIN_LEVEL_HEIGHT, math.ceil(texels_per_lobe * per_lobe))))
+        hs = int(max(MIN_LEVEL_HEIGHT, math.ceil(texels_per_lobe * per_lobe)))
+        # quadrature needs source texels finer than the lobe; else sample the (bilinear) source
+        if hs <= he and 2 * h * h * 2 * hs * hs <= quadrature_budget:
+            src = env if hs == he else F.adaptive_avg_pool2d(env, (hs, 2 * hs))
+            out.append(_prefilter_quadrature(src, rough, h))
+        else:
+            if src_levels is None:
+                src_levels = build_mip_pyramid(env)
+            out.append(_prefilter_importance(src_levels, rough, h, samples, chunk))
+    return out
+
+
+# ------------------------------------------------------------------------------ DFG LUT
+
+
+@lru_cache(maxsize=8)
+def _dfg_lut_cpu(size: int, samples: int) -> torch.Tensor:
+    """float64 LUT ``(2, size, size)``: rows = roughness, columns = n.v (texel centres)."""
+    c = (torch.arange(size, dtype=torch.float64) + 0.5) / size
+    rough = c.view(size, 1, 1)
+    nv = c.view(1, size, 1)
+    xi = hammersley(samples)
+    a = rough.clamp_min(MIN_ROUGHNESS) ** 2
+    phi = 2.0 * math.pi * xi[:, 0].view(1, 1, -1)
+    u = xi[:, 1].view(1, 1, -1)
+    n_dot_h = torch.sqrt((1.0 - u) / (1.0 + (a * a - 1.0) * u))
+    sin_h = torch.sqrt((1.0 - n_dot_h**2).clamp_min(0.0))
+    v = (torch.sqrt(1.0 - nv * nv), torch.zeros_like(nv), nv)  # view in the x-z plane
+    v_dot_h = v[0] * sin_h * torch.cos(phi) + v[2] * n_dot_h
+    n_dot_l = 2.0 * v_dot_h * n_dot_h - nv  # l = 2 (v.h) h - v, n = z
+    ok = (n_dot_l > 0) & (v_dot_h > 0)
+    vis = v_smith_ggx_correlated(nv.expand_as(n_dot_l), n_dot_l.clamp_min(1e-12), rough)
+    # f * n.l / pdf with pdf(l) = D (n.h) / (4 v.h): D cancels.
+    g_vis = torch.where(ok, vis * 4.0 * v_dot_h * n_dot_l / n_dot_h, torch.zeros_like(vis))
+    fc = (1.0 - v_dot_h.clamp(0.0, 1.0)) ** 5
+    scale = ((1.0 - fc) * g_vis).mean(-1)
+    bias = (fc * g_vis).mean(-1)
+    return torch.stack((scale, bias), 0)
+
+
+def dfg_lut(
+    size: int = 32,
+    samples: int = 512,
+    *,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> torch.Tensor:
+    """Split-sum DFG table (Karis 2013), computed once per (size, samples) and cached.
+
+    Channel 0 is the F0 scale ``A = int (1 - Fc) G_vis``, channel 1 the bias
+    ``B = int Fc G_vis`` (``Fc = (1 - v.h)^5``, G_vis = height-correlated Smith visibility
+    times ``4 (v.h) (n.l) / (n.h)``); ``A + B`` is the directional albedo for f0 = 1 used by
+    the multiple-scattering compensation. Rows index perceptual roughness, columns n.v,
+    both at texel centres ``(i + 0.5) / size``. Stored in ``dtype`` (float32 default).
+
+    Returns:
+        ``(2, size, size)`` tensor.
+    """
+    for name, val in (("size", size), ("samples", samples)):
+        if int(val) != val or val < 2:
+            raise ValueError(f"{name}: expected an int >= 2, got {val!r}")
+    return _dfg_lut_cpu(int(size), int(samples)).to(device=device, dtype=dtype)
+
+
+def lookup_dfg(
+    lut: torch.Tensor, n_dot_v: torch.Tensor, roughness: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Bilinear LUT lookup: ``n_dot_v``, ``roughness`` ``(B, 1, H, W)`` -> (A, B) each
+    ``(B, 1, H, W)``; inputs are clamped to the table (edge texels beyond the centres)."""
+    b = n_dot_v.shape[0]
+    x = n_dot_v.clamp(0.0, 1.0) * 2.0 - 1.0
+    y = roughness.clamp(0.0, 1.0) * 2.0 - 1.0
+    grid = torch.stack((x[:, 0], y[:, 0]), -1)
+    tab = lut.to(n_dot_v.dtype)[None].expand(b, -1, -1, -1)
+    ab = F.grid_sample(tab, grid, mode="bilinear", padding_mode="border", align_corners=False)
+    return ab[:, :1], ab[:, 1:]
+
+
+# -------------------------------------------------------------------------- environment
+
+
+class Environment:
+    """An HDR environment light: lat-long radiance, rotation, intensity and the cached
+    IBL precomputations (SH irradiance, prefiltered specular chain).
+
+    Args:
+        radiance: ``(3, He, We)`` or ``(B, 3, He, We)`` linear radiance, lat-long layout of
+            :func:`torchraster.texture.latlong_uv`.
+        rotation: ``(3, 3)`` or ``(B, 3, 3)``: an env-space direction d is seen in the world
+            at ``rotation @ d``. Combined with ``yaw`` as ``rotation @ yaw_rotation(yaw)``.
+        yaw: rotation about +y in radians.
+        intensity: scale on all radiance (float or ``(B,)`` tensor).
+        specular_size, specular_levels, specular_samples: knobs of
+            :func:`prefilter_specular` (defaults chosen by scripts/bench_quality.py).
+
+    The SH coefficients and the specular chain are computed on first use and kept. If
+    ``radiance`` requires grad, build a new Environment per optimisation step.
+    """
+
+    def __init__(
+        self,
+        radiance: torch.Tensor,
+        *,
+        rotation: torch.Tensor | None = None,
+        yaw: float = 0.0,
+        intensity: float | torch.Tensor = 1.0,
+        specular_size: int = 64,
+        specular_levels: int = 6,
+        specular_samples: int = 32,
+    ) -> None:
+        if isinstance(radiance, torch.Tensor) and radiance.dim() == 3:
+            radiance = radiance[None]
+        check_tensor("radiance", radiance, ("B", 3, "He", "We"), floating=True)
+        self.radiance = radiance
+        rot = yaw_rotation(yaw).to(device=radiance.device, dtype=radiance.dtype)
+        if rotation is not None:
+            if isinstance(rotation, torch.Tensor) and rotation.dim() == 2:
+                rotation = rotation[None]
+            check_tensor("rotation", rotation, ("B", 3, 3), floating=True, finite=True)
+            rot = rotation.to(radiance.dtype) @ rot
+        self.rotation = rot if rot.dim() == 3 else rot[None]
+        if isinstance(intensity, torch.Tensor):
+            check_tensor("intensity", intensity.reshape(-1), ("B",), floating=True)
+            self.intensity = intensity.reshape(-1, 1, 1, 1).to(radiance.dtype)
+        else:
+            self.intensity = float(intensity)
+        self.specular_size = specular_size
+        self.specular_levels = specular_levels
+        self.specular_samples = specular_samples
+        self._sh: torch.Tensor | None = None
+        self._spec: list[torch.Tensor] | None = None
+
+    @property
+    def sh(self) -> torch.Tensor:
+        """``(B, 9, 3)`` SH radiance coefficients (env space, without intensity)."""
+        if self._sh is None:
+            self._sh = sh_project(self.radiance)
+        return self._sh
+
+    @property
+    def specular_chain(self) -> list[torch.Tensor]:
+        """Prefiltered specular levels (env space, without intensity)."""
+        if self._spec is None:
+            self._spec = prefilter_specular(
+                self.radiance,
+                size=self.specular_size,
+                levels=self.specular_levels,
+                samples=self.specular_samples,
+            )
+        return self._spec
+
+    def to_env(self, d: torch.Tensor) -> torch.Tensor:
+        """World directions ``(B, 3, H, W)`` -> env space (``rotation^T d``)."""
+        rot = self.rotation.to(d.dtype)
+        return torch.einsum("bji,bjhw->bihw", rot.expand(d.shape[0], -1, -1), d)
+
+    def _scale(self, x: torch.Tensor) -> torch.Tensor:
+        if isinstance(self.intensity, float):
+            return x * self.intensity if self.intensity != 1.0 else x
+        return x * self.intensity.to(x.dtype)
+
+    def background(self, view_dirs: torch.Tensor) -> torch.Tensor:
+        """Radiance seen along ``view_dirs`` ``(B, 3, H, W)`` (camera -> scene) ->
+        ``(B, 3, H, W)``: a bilinear lookup of the full-resolution map."""
+        check_tensor("view_dirs", view_dirs, ("B", 3, "H", "W"), floating=True)
+        env = self.radiance.to(view_dirs.dtype)
+        return self._scale(sample_latlong(env, self.to_env(view_dirs)))
+
+    def irradiance(self, n: torch.Tensor) -> torch.Tensor:
+        """Irradiance (W/m^2) at normals ``(B, 3, H, W)`` from the SH -> ``(B, 3, H, W)``."""
+        check_tensor("n", n, ("B", 3, "H", "W"), floating=True)
+        return self._scale(irradiance_sh(self.sh.to(n.dtype), self.to_env(n)))
+
+    def specular(self, r: torch.Tensor, roughness: torch.Tensor) -> torch.Tensor:
+        """Prefiltered radiance along reflection directions ``r`` ``(B, 3, H, W)`` for
+        perceptual ``roughness`` ``(B, 1, H, W)``: trilinear between the two nearest
+        roughness levels (lod from :func:`roughness_to_lod`) -> ``(B, 3, H, W)``."""
+        check_tensor("r", r, ("B", 3, "H", "W"), floating=True)
+        check_tensor("roughness", roughness, ("B", 1, "H", "W"), floating=True)
+        chain = [lv.to(r.dtype) for lv in self.specular_chain]
+        if chain[0].shape[0] not in (1, r.shape[0]):
+            raise ValueError(f"r: batch {r.shape[0]} does not match the environment's")
+        uv = latlong_uv(self.to_env(r))
+        lod = roughness_to_lod(roughness, len(chain))
+        return self._scale(_sample_levels(chain, uv[:, 0], uv[:, 1], lod, ("wrap", "clamp")))
+
+
+def shade_ibl(
+    normal: torch.Tensor,
+    view_dir: torch.Tensor,
+    albedo: torch.Tensor,
+    metallic: torch.Tensor,
+    roughness: torch.Tensor,
+    ao: torch.Tensor | None,
+    env: Environment,
+    *,
+    multiscatter: bool = True,
+    f0_dielectric: float = 0.04,
+    lut_size: int = 32,
+    lut_samples: int = 512,
+) -> torch.Tensor:
+    """Image-based lighting of a metallic-roughness surface (split sum, see module doc).
+
+    Args:
+        normal: ``(B, 3, H, W)`` shading normals (normalised here).
+        view_dir: ``(B, 3, H, W)`` directions from the surface towards the eye.
+        albedo: ``(B, 3, H, W)`` linear base colour (or ``(B, 1, H, W)``).
+        metallic: ``(B, 1, H, W)`` in [0, 1].
+        roughness: ``(B, 1, H, W)`` perceptual roughness in [0, 1].
+        ao: ``(B, 1, H, W)`` ambient occlusion in [0, 1] applied to diffuse and specular
+            IBL (glTF: occlusion of indirect light), or None.
+        env: the :class:`Environment`.
+        multiscatter: Fdez-Aguera / Filament energy compensation of the specular lobe.
+        f0_dielectric: reflectance at normal incidence for metallic = 0. f90 follows
+            Filament, ``saturate(50 * 0.33 * f0)``, so f0 = 0 turns specular off.
+        lut_size, lut_samples: knobs of :func:`dfg_lut`.
+
+    Returns:
+        ``(B, 3, H, W)`` outgoing radiance (same units as the environment).
+    """
+    check_tensor("normal", normal, ("B", 3, "H", "W"), floating=True)
+    b, _, h, w = normal.shape
+    check_tensor("view_dir", view_dir, (b, 3, h, w), floating=True)
+    check_tensor("albedo", albedo, (b, None, h, w), floating=True)
+    if albedo.shape[1] not in (1, 3):
+        raise ValueError(f"albedo: expected 1 or 3 channels, got {albedo.shape[1]}")
+    check_tensor("metallic", metallic, (b, 1, h, w), floating=True)
+    check_tensor("roughness", roughness, (b, 1, h, w), floating=True)
+    if ao is not None:
+        check_tensor("ao", ao, (b, 1, h, w), floating=True)
+    if not isinstance(env, Environment):
+        raise TypeError(f"env: expected an Environment, got {type(env).__name__}")
+
+    n = _normalize(normal)
+    v = _normalize(view_dir)
+    n_dot_v_raw = _dot(n, v)
+    n_dot_v = n_dot_v_raw.clamp(MIN_N_DOT_V, 1.0)
+    r = 2.0 * n_dot_v_raw * n - v  # reflect(-v, n)
+    rough = roughness.clamp(0.0, 1.0)
+    metal = metallic.clamp(0.0, 1.0)
+
+    f0 = f0_dielectric * (1.0 - metal) + albedo * metal
+    f90 = (f0.mean(1, keepdim=True) * (3 * 50.0 * 0.33)).clamp(0.0, 1.0)  # dot(f0, 16.5)
+    lut = dfg_lut(lut_size, lut_samples, device=normal.device, dtype=normal.dtype)
+    a, bias = lookup_dfg(lut, n_dot_v, rough)
+    e_ss = f0 * a + f90 * bias
+    spec = env.specular(r, rough) * e_ss
+    if multiscatter:
+        spec = spec * (1.0 + f0 * (1.0 / (a + bias).clamp_min(MIN_DFG_ALBEDO) - 1.0))
+    diffuse = (1.0 - metal) * albedo * env.irradiance(n) * (1.0 / math.pi) * (1.0 - e_ss)
+    out = diffuse + spec
+    return out * ao if ao is not None else out

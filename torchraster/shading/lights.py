@@ -1,0 +1,551 @@
+"""Batched lights: ambient (constant or 9 SH coefficients), directional, point and spot.
+
+Many lights are a tensor dimension: every per-light tensor is ``(B, L, ...)`` and the
+lighting pass evaluates all lights of a type with one set of tensor ops. Names and units
+follow glTF ``KHR_lights_punctual`` (and pyrender):
+
+* ``color``: linear RGB, ``(B, L, 3)``.
+* ``intensity``: directional lights in lux (lm/m^2), point and spot lights in candela
+  (lm/sr), ``(B, L)``.
+* ``range``: distance (m) at which a point / spot light's contribution reaches 0,
+  ``(B, L)``; ``inf`` = no range (pure inverse-square falloff).
+* ``inner_cone_angle`` / ``outer_cone_angle``: radians from the spot axis, ``(B, L)``,
+  ``0 <= inner <= outer <= pi/2``.
+* ``direction``: the direction the light *travels* (a glTF light's local -Z axis),
+  ``(B, L, 3)``, need not be unit length. ``position``: world space, ``(B, L, 3)``.
+* ``cast_shadows``: ``(B, L)`` bool, read by the shadow pass (not by this module).
+
+Ambient light is a distant environment of incident *radiance* given by 9 real SH
+coefficients ``(B, 9, 3)`` (order and normalisation of Ramamoorthi & Hanrahan 2001:
+``Y00, Y1-1, Y10, Y11, Y2-2, Y2-1, Y20, Y21, Y22``); a constant colour ``c`` is
+``sh[:, 0] = c / Y00``. The incidence functions return, per light and pixel, the unit
+direction ``l`` to the light and the illuminance ``E`` (lux, RGB) arriving perpendicular
+to ``l``; a shading model turns them into radiance.
+
+The YAML schema is the pydantic union :data:`LightConfig`; :func:`lights_from_config`
+turns a list of configs into :class:`Lights` tensors.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Annotated, Literal
+
+import torch
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, field_validator, model_validator
+
+from torchraster._validate import check_tensor
+from torchraster.shading.brdf import safe_normalize
+
+#: Closest distance (m) a point / spot light is evaluated at: ``E = I / max(d^2, 1e-4)``
+#: (Filament ``getDistanceAttenuation``, 1 cm). Keeps E finite at the light's position.
+MIN_LIGHT_DISTANCE: float = 0.01
+
+#: Floor of ``cos(inner) - cos(outer)`` in the spot falloff (glTF KHR_lights_punctual's
+#: reference implementation and Filament use 1e-3); makes inner == outer a hard edge.
+MIN_CONE_COS_DELTA: float = 1e-3
+
+# Real SH basis constants, bands 0-2 (Ramamoorthi & Hanrahan 2001, eq. 3).
+SH_C0 = 0.5 * math.sqrt(1.0 / math.pi)  # 0.282095
+SH_C1 = math.sqrt(3.0 / (4.0 * math.pi))  # 0.488603
+SH_C2 = 0.5 * math.sqrt(15.0 / math.pi)  # 1.092548
+SH_C20 = 0.25 * math.sqrt(5.0 / math.pi)  # 0.315392
+SH_C22 = 0.25 * math.sqrt(15.0 / math.pi)  # 0.546274
+#: Clamped-cosine convolution factors A_l per SH band (Ramamoorthi & Hanrahan 2001, eq. 8).
+SH_COSINE_LOBE = (math.pi, 2.0 * math.pi / 3.0, math.pi / 4.0)
+
+
+# --------------------------------------------------------------------------- containers
+
+
+def _check_common(lights: object, batch: int | None = None) -> tuple[int, int]:
+    """Validate the per-light tensors of a light container; return (B, L)."""
+    first = None
+    for f in dataclasses.fields(lights):  # type: ignore[arg-type]
+        value = getattr(lights, f.name)
+        name = f"{type(lights).__name__}.{f.name}"
+        if f.name == "cast_shadows":
+            continue
+        vec = f.name in ("color", "position", "direction")
+        t = check_tensor(name, value, ("B", "L", 3) if vec else ("B", "L"), floating=True)
+        if first is None:
+            first = (t.shape[0], t.shape[1])
+        elif (t.shape[0], t.shape[1]) != first:
+            raise ValueError(f"{name}: expected (B, L) = {first}, got {tuple(t.shape[:2])}")
+    assert first is not None
+    shadows = lights.cast_shadows  # type: ignore[attr-defined]
+    if shadows is not None:
+        check_tensor(f"{type(lights).__name__}.cast_shadows", shadows, first)
+        if shadows.dtype != torch.bool:
+            raise TypeError(f"{type(lights).__name__}.cast_shadows: expected a bool tensor")
+    if bool((lights.intensity < 0).any()):  # type: ignore[attr-defined]
+        raise ValueError(f"{type(lights).__name__}.intensity: must be >= 0")
+    return first
+
+
+class _LightSet:
+    """Shared helpers for the light containers (all fields are ``(B, L, ...)`` tensors)."""
+
+    @property
+    def count(self) -> int:
+        """Number of lights L."""
+        return self.color.shape[1]  # type: ignore[attr-defined]
+
+    @property
+    def batch_size(self) -> int:
+        return self.color.shape[0]  # type: ignore[attr-defined]
+
+    def select(self, index: slice):
+        """The lights ``[:, index]`` as a container of the same type."""
+        return dataclasses.replace(
+            self,  # type: ignore[arg-type]
+            **{f.name: getattr(self, f.name)[:, index] for f in dataclasses.fields(self)},  # type: ignore[arg-type]
+        )
+
+    def to(self, device=None, dtype: torch.dtype | None = None):
+        """Move to ``device`` and cast floating tensors to ``dtype``."""
+        out = {}
+        for f in dataclasses.fields(self):  # type: ignore[arg-type]
+            t = getattr(self, f.name)
+            out[f.name] = t.to(device=device, dtype=dtype if t.is_floating_point() else None)
+        return dataclasses.replace(self, **out)  # type: ignore[arg-type]
+
+
+@dataclass
+class DirectionalLights(_LightSet):
+    """Directional (sun-like) lights: ``direction`` / ``color`` ``(B, L, 3)``,
+    ``intensity`` ``(B, L)`` in lux, ``cast_shadows`` ``(B, L)`` bool (default False)."""
+
+    direction: torch.Tensor
+    color: torch.Tensor
+    intensity: torch.Tensor
+    cast_shadows: torch.Tensor | None = None
+
+    def __post_init__(self) -> None:
+        b, n = _check_common(self)
+        if self.cast_shadows is None:
+            self.cast_shadows = torch.zeros(b, n, dtype=torch.bool, device=self.color.device)
+
+
+@dataclass
+class PointLights(_LightSet):
+    """Point lights: ``position`` / ``color`` ``(B, L, 3)``, ``intensity`` ``(B, L)`` in
+    candela, ``range`` ``(B, L)`` in m (``inf`` = unlimited; default inf), ``cast_shadows``."""
+
+    position: torch.Tensor
+    color: torch.Tensor
+    intensity: torch.Tensor
+    range: torch.Tensor | None = None
+    cast_shadows: torch.Tensor | None = None
+
+    def __post_init__(self) -> None:
+        if self.range is None:
+            self.range = torch.full_like(self.intensity, math.inf)
+        b, n = _check_common(self)
+        if bool((self.range <= 0).any()) or bool(torch.isnan(self.range).any()):
+            raise ValueError("PointLights.range: must be > 0 (inf for no range)")
+        if self.cast_shadows is None:
+            self.cast_shadows = torch.zeros(b, n, dtype=torch.bool, device=self.color.device)
+
+
+@dataclass
+class SpotLights(_LightSet):
+    """Spot lights: point lights restricted to a cone around ``direction`` (``(B, L, 3)``)
+    with a smooth falloff between ``inner_cone_angle`` and ``outer_cone_angle`` (radians,
+    ``(B, L)``, defaults 0 and pi/4 as glTF)."""
+
+    position: torch.Tensor
+    direction: torch.Tensor
+    color: torch.Tensor
+    intensity: torch.Tensor
+    range: torch.Tensor | None = None
+    inner_cone_angle: torch.Tensor | None = None
+    outer_cone_angle: torch.Tensor | None = None
+    cast_shadows: torch.Tensor | None = None
+
+    def __post_init__(self) -> None:
+        if self.range is None:
+            self.range = torch.full_like(self.intensity, math.inf)
+        if self.inner_cone_angle is None:
+            self.inner_cone_angle = torch.zeros_like(self.intensity)
+        if self.outer_cone_angle is None:
+            self.outer_cone_angle = torch.full_like(self.intensity, math.pi / 4)
+        b, n = _check_common(self)
+        if bool((self.range <= 0).any()) or bool(torch.isnan(self.range).any()):
+            raise ValueError("SpotLights.range: must be > 0 (inf for no range)")
+        inner, outer = self.inner_cone_angle, self.outer_cone_angle
+        if not bool(((inner >= 0) & (inner <= outer) & (outer <= math.pi / 2)).all()):
+            raise ValueError(
+                "SpotLights.inner_cone_angle / outer_cone_angle: expected "
+                "0 <= inner <= outer <= pi/2 (radians)"
+            )
+        if self.cast_shadows is None:
+            self.cast_shadows = torch.zeros(b, n, dtype=torch.bool, device=self.color.device)
+
+
+@dataclass
+class Lights:
+    """All lights of a batch of scenes. Any part may be None (or hold L = 0 lights).
+
+    Attributes:
+        ambient: ``(B, 9, 3)`` SH coefficients of the ambient incident radiance, or None.
+        directional, point, spot: light containers, or None.
+    """
+
+    ambient: torch.Tensor | None = None
+    directional: DirectionalLights | None = None
+    point: PointLights | None = None
+    spot: SpotLights | None = None
+
+    def __post_init__(self) -> None:
+        sizes = {}
+        if self.ambient is not None:
+            check_tensor("Lights.ambient", self.ambient, ("B", 9, 3), floating=True)
+            sizes["ambient"] = self.ambient.shape[0]
+        for name, kind in (
+            ("directional", DirectionalLights),
+            ("point", PointLights),
+            ("spot", SpotLights),
+        ):
+            part = getattr(self, name)
+            if part is not None:
+                if not isinstance(part, kind):
+                    raise TypeError(
+                        f"Lights.{name}: expected {kind.__name__}, got {type(part).__name__}"
+                    )
+                sizes[name] = part.batch_size
+        if len(set(sizes.values())) > 1:
+            raise ValueError(f"Lights: batch sizes differ: {sizes}")
+
+    @property
+    def batch_size(self) -> int | None:
+        """B, or None when there are no lights at all."""
+        if self.ambient is not None:
+            return self.ambient.shape[0]
+        for part in (self.directional, self.point, self.spot):
+            if part is not None:
+                return part.batch_size
+        return None
+
+    def to(self, device=None, dtype: torch.dtype | None = None) -> Lights:
+        """Move all tensors to ``device`` / cast floating ones to ``dtype``."""
+        return Lights(
+            ambient=None if self.ambient is None else self.ambient.to(device=device, dtype=dtype),
+            directional=None if self.directional is None else self.directional.to(device, dtype),
+            point=None if self.point is None else self.point.to(device, dtype),
+            spot=None if self.spot is None else self.spot.to(device, dtype),
+        )
+
+
+# --------------------------------------------------------------------------- ambient (SH)
+
+
+def sh_basis(d: torch.Tensor) -> torch.Tensor:
+    """Real SH basis Y_k(d), bands 0-2, for unit directions with xyz on dim -3.
+
+    ``(..., 3, H, W) -> (..., 9, H, W)`` in the order Y00, Y1-1, Y10, Y11, Y2-2, Y2-1,
+    Y20, Y21, Y22 (Ramamoorthi & Hanrahan 2001).
+    """
+    x, y, z = d.unbind(dim=-3)
+    ys = [
+        torch.full_like(x, SH_C0),
+        SH_C1 * y,
+        SH_C1 * z,
+        SH_C1 * x,
+        SH_C2 * x * y,
+        SH_C2 * y * z,
+        SH_C20 * (3.0 * z * z - 1.0),
+        SH_C2 * x * z,
+        SH_C22 * (x * x - y * y),
+    ]
+    return torch.stack(ys, dim=-3)
+
+
+def sh_from_color(color: torch.Tensor) -> torch.Tensor:
+    """SH coefficients ``(B, 9, 3)`` of a constant incident radiance ``color`` ``(B, 3)``."""
+    check_tensor("color", color, ("B", 3), floating=True)
+    sh = color.new_zeros(color.shape[0], 9, 3)
+    return sh.index_copy(1, torch.zeros(1, dtype=torch.long, device=color.device),
+                         (color / SH_C0)[:, None])
+
+
+def sh_irradiance(sh: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
+    """Irradiance E(n) (lux, RGB) from SH radiance coefficients (Ramamoorthi & Hanrahan 2001).
+
+    ``E(n) = sum_k A_band(k) L_k Y_k(n)`` with ``A = (pi, 2pi/3, pi/4)``; a Lambertian
+    surface then reflects ``albedo / pi * E``. A constant radiance c gives ``E = pi c``.
+
+    Args:
+        sh: ``(B, 9, 3)`` radiance coefficients.
+        n: ``(B, 3, H, W)`` unit normals (or any direction, e.g. the reflection vector).
+
+    Returns:
+        ``(B, 3, H, W)`` irradiance, not clamped (order-2 SH may ring slightly below 0).
+    """
+    check_tensor("sh", sh, ("B", 9, 3), floating=True)
+    check_tensor("n", n, ("B", 3, None, None), floating=True)
+    lobe = sh.new_tensor([SH_COSINE_LOBE[0]] + [SH_COSINE_LOBE[1]] * 3 + [SH_COSINE_LOBE[2]] * 5)
+    coeff = sh * lobe[:, None]  # (B, 9, 3)
+    return torch.einsum("bkhw,bkc->bchw", sh_basis(n), coeff)
+
+
+# --------------------------------------------------------------------------- punctual
+
+
+def distance_attenuation(dist2: torch.Tensor, range_: torch.Tensor) -> torch.Tensor:
+    """Inverse-square falloff with a smooth range window (Karis 2013, Filament).
+
+    ``window = saturate(1 - (d / range)^4)^2``; returns ``window / max(d^2, 0.01^2)``
+    (``MIN_LIGHT_DISTANCE``). ``range = inf`` gives the pure inverse-square law.
+    Shapes broadcast; ``dist2`` in m^2, result in 1/m^2.
+    """
+    finite = torch.isfinite(range_)  # "double where": 0 (not NaN) gradient for range = inf
+    safe = torch.where(finite, range_, 1.0)
+    inv_r2 = torch.where(finite, 1.0 / (safe * safe), 0.0)
+    factor = dist2 * inv_r2
+    window = (1.0 - factor * factor).clamp(0.0, 1.0) ** 2
+    return window / dist2.clamp_min(MIN_LIGHT_DISTANCE**2)
+
+
+def spot_attenuation(
+    cos_angle: torch.Tensor, inner_cone_angle: torch.Tensor, outer_cone_angle: torch.Tensor
+) -> torch.Tensor:
+    """Smooth spot cone falloff (glTF KHR_lights_punctual reference, Filament).
+
+    ``t = saturate((cos_angle - cos(outer)) / max(cos(inner) - cos(outer), 1e-3))``,
+    returns ``t^2``: 1 inside the inner cone, 0 outside the outer cone. Shapes broadcast.
+    """
+    cos_outer = torch.cos(outer_cone_angle)
+    scale = 1.0 / (torch.cos(inner_cone_angle) - cos_outer).clamp_min(MIN_CONE_COS_DELTA)
+    t = ((cos_angle - cos_outer) * scale).clamp(0.0, 1.0)
+    return t * t
+
+
+def _per_light(x: torch.Tensor) -> torch.Tensor:
+    """(B, L, C) -> (B, L, C, 1, 1), to broadcast against (B, L, C, H, W)."""
+    return x[..., None, None]
+
+
+def directional_incidence(lights: DirectionalLights) -> tuple[torch.Tensor, torch.Tensor]:
+    """Direction to the light and illuminance for directional lights.
+
+    Returns:
+        ``l``: ``(B, L, 3, 1, 1)`` unit vectors towards the light (``-direction``).
+        ``E``: ``(B, L, 3, 1, 1)`` illuminance (lux, RGB) = color * intensity.
+    """
+    l = -safe_normalize(lights.direction, dim=-1)
+    e = lights.color * lights.intensity[..., None]
+    return _per_light(l), _per_light(e)
+
+
+def _punctual(
+    light_pos: torch.Tensor, color_intensity: torch.Tensor, range_: torch.Tensor,
+    position: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    check_tensor("position", position, (light_pos.shape[0], 3, None, None), floating=True)
+    to_light = _per_light(light_pos) - position[:, None]  # (B, L, 3, H, W)
+    dist2 = (to_light * to_light).sum(dim=-3, keepdim=True)
+    l = safe_normalize(to_light, dim=-3)
+    att = distance_attenuation(dist2, _per_light(range_[..., None]))
+    return l, _per_light(color_intensity) * att
+
+
+def point_incidence(
+    lights: PointLights, position: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Direction to the light and illuminance of point lights at surface points.
+
+    Args:
+        lights: L point lights of a batch of B scenes.
+        position: ``(B, 3, H, W)`` world-space surface positions (m).
+
+    Returns:
+        ``l``: ``(B, L, 3, H, W)`` unit vectors towards each light (0 at the light itself).
+        ``E``: ``(B, L, 3, H, W)`` illuminance (lux, RGB) ``= color I window / d^2``.
+    """
+    ci = lights.color * lights.intensity[..., None]
+    return _punctual(lights.position, ci, lights.range, position)
+
+
+def spot_incidence(
+    lights: SpotLights, position: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Like :func:`point_incidence`, times the cone falloff :func:`spot_attenuation`.
+
+    The cone angle is measured between the spot ``direction`` and the ray from the light
+    to the surface point. Shapes as in :func:`point_incidence`.
+    """
+    ci = lights.color * lights.intensity[..., None]
+    l, e = _punctual(lights.position, ci, lights.range, position)
+    axis = _per_light(safe_normalize(lights.direction, dim=-1))  # (B, L, 3, 1, 1)
+    cos_angle = -(axis * l).sum(dim=-3, keepdim=True)
+    cone = spot_attenuation(
+        cos_angle,
+        _per_light(lights.inner_cone_angle[..., None]),
+        _per_light(lights.outer_cone_angle[..., None]),
+    )
+    return l, e * cone
+
+
+# --------------------------------------------------------------------------- YAML schema
+
+_NonNeg = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
+Vec3 = Annotated[list[Annotated[float, Field(allow_inf_nan=False)]],
+                 Field(min_length=3, max_length=3)]
+Color = Annotated[list[_NonNeg], Field(min_length=3, max_length=3)]
+
+
+class _LightConfigBase(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    name: str | None = None
+    color: Color = Field(default_factory=lambda: [1.0, 1.0, 1.0])
+    intensity: _NonNeg = 1.0
+
+
+class _DirectionMixin(BaseModel):
+    @field_validator("direction", check_fields=False)
+    @classmethod
+    def check_direction(cls, v: list[float]) -> list[float]:
+        if sum(x * x for x in v) <= 0.0:
+            raise ValueError("direction must not be the zero vector")
+        return v
+
+
+class AmbientLightConfig(_LightConfigBase):
+    """Constant ambient radiance ``color * intensity`` (nits), or ``sh``: 9 RGB SH
+    coefficients of the incident radiance (scaled by ``intensity``, ``color`` ignored)."""
+
+    type: Literal["ambient"]
+    sh: Annotated[list[Vec3], Field(min_length=9, max_length=9)] | None = None
+
+
+class DirectionalLightConfig(_DirectionMixin, _LightConfigBase):
+    """Directional light: ``direction`` the light travels (default -Z, glTF), lux."""
+
+    type: Literal["directional"]
+    direction: Vec3 = Field(default_factory=lambda: [0.0, 0.0, -1.0])
+    cast_shadows: bool = False
+
+
+class PointLightConfig(_LightConfigBase):
+    """Point light at ``position``; ``intensity`` in candela, optional ``range`` (m)."""
+
+    type: Literal["point"]
+    position: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+    range: Annotated[float, Field(gt=0.0)] | None = None
+    cast_shadows: bool = False
+
+
+class SpotLightConfig(_DirectionMixin, PointLightConfig):
+    """Spot light: a point light limited to a cone around ``direction`` (default -Z)."""
+
+    type: Literal["spot"]  # type: ignore[assignment]
+    direction: Vec3 = Field(default_factory=lambda: [0.0, 0.0, -1.0])
+    inner_cone_angle: Annotated[float, Field(ge=0.0, le=math.pi / 2)] = 0.0
+    outer_cone_angle: Annotated[float, Field(gt=0.0, le=math.pi / 2)] = math.pi / 4
+
+    @model_validator(mode="after")
+    def _cones(self) -> SpotLightConfig:
+        if self.inner_cone_angle >= self.outer_cone_angle:
+            raise ValueError(
+                f"inner_cone_angle ({self.inner_cone_angle}) must be < outer_cone_angle "
+                f"({self.outer_cone_angle}) (radians)"
+            )
+        return self
+
+
+LightConfig = Annotated[
+    AmbientLightConfig | DirectionalLightConfig | PointLightConfig | SpotLightConfig,
+    Field(discriminator="type"),
+]
+_LIGHT_LIST = TypeAdapter(list[LightConfig])
+
+
+def parse_lights(data: object) -> list:
+    """Validate a YAML/JSON list of light dicts into :data:`LightConfig` models.
+
+    Raises ``pydantic.ValidationError`` whose messages carry the key path (e.g. ``1.spot.range``).
+    """
+    return _LIGHT_LIST.validate_python(data)
+
+
+def lights_from_config(
+    configs: Sequence[object],
+    batch: int = 1,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> Lights:
+    """Build :class:`Lights` tensors (the same lights for each of ``batch`` scenes).
+
+    Args:
+        configs: :data:`LightConfig` models or plain dicts (validated with
+            :func:`parse_lights`).
+        batch: batch size B >= 1.
+        device, dtype: of the created tensors.
+
+    Returns:
+        Lights with ``ambient (B, 9, 3)`` (sum of all ambient lights) or None, and
+        directional / point / spot containers with ``L`` = number of lights of each type
+        (None for types that are absent).
+    """
+    if not isinstance(batch, int) or isinstance(batch, bool) or batch < 1:
+        raise ValueError(f"batch: expected a positive int, got {batch!r}")
+    cfgs = parse_lights([c.model_dump() if isinstance(c, BaseModel) else c for c in configs])
+
+    def tensor(rows: list, shape_tail: tuple[int, ...] = ()) -> torch.Tensor:
+        t = torch.tensor(rows, device=device, dtype=dtype).reshape(1, len(rows), *shape_tail)
+        return t.expand(batch, *t.shape[1:]).contiguous()
+
+    def shadows(rows: list) -> torch.Tensor:
+        t = torch.tensor(rows, device=device, dtype=torch.bool).reshape(1, -1)
+        return t.expand(batch, -1).contiguous()
+
+    def inf_if_none(r: float | None) -> float:
+        return math.inf if r is None else r
+
+    by_type: dict[str, list] = {"ambient": [], "directional": [], "point": [], "spot": []}
+    for c in cfgs:
+        by_type[c.type].append(c)
+
+    ambient = None
+    if by_type["ambient"]:
+        sh = torch.zeros(9, 3, dtype=torch.float64)
+        for c in by_type["ambient"]:
+            if c.sh is not None:
+                sh += torch.tensor(c.sh, dtype=torch.float64) * c.intensity
+            else:
+                sh[0] += torch.tensor(c.color, dtype=torch.float64) * c.intensity / SH_C0
+        ambient = sh.to(device=device, dtype=dtype)[None].expand(batch, 9, 3).contiguous()
+
+    directional = point = spot = None
+    if d := by_type["directional"]:
+        directional = DirectionalLights(
+            direction=tensor([c.direction for c in d], (3,)),
+            color=tensor([c.color for c in d], (3,)),
+            intensity=tensor([c.intensity for c in d]),
+            cast_shadows=shadows([c.cast_shadows for c in d]),
+        )
+    if p := by_type["point"]:
+        point = PointLights(
+            position=tensor([c.position for c in p], (3,)),
+            color=tensor([c.color for c in p], (3,)),
+            intensity=tensor([c.intensity for c in p]),
+            range=tensor([inf_if_none(c.range) for c in p]),
+            cast_shadows=shadows([c.cast_shadows for c in p]),
+        )
+    if s := by_type["spot"]:
+        spot = SpotLights(
+            position=tensor([c.position for c in s], (3,)),
+            direction=tensor([c.direction for c in s], (3,)),
+            color=tensor([c.color for c in s], (3,)),
+            intensity=tensor([c.intensity for c in s]),
+            range=tensor([inf_if_none(c.range) for c in s]),
+            inner_cone_angle=tensor([c.inner_cone_angle for c in s]),
+            outer_cone_angle=tensor([c.outer_cone_angle for c in s]),
+            cast_shadows=shadows([c.cast_shadows for c in s]),
+        )
+    return Lights(ambient=ambient, directional=directional, point=point, spot=spot)
