@@ -31,7 +31,7 @@ def check_tensor(
     want = "(" + ", ".join("?" if s is None else str(s) for s in shape) + ")"
     if value.dim() != len(shape):
         raise ValueError(f"{name}: expected shape {want}, got {tuple(value.shape)}")
-    for dim, (got, exp) in enumerate(zip(value.shape, shape)):
+    for dim, (got, exp) in enumerate(zip(value.shape, shape, strict=False)):
         if isinstance(exp, int) and got != exp:
             raise ValueError(
                 f"{name}: expected shape {want}, got {tuple(value.shape)} (dim {dim} must be {exp})"

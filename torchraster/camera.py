@@ -25,6 +25,7 @@ import kornia
 import torch
 
 from ._validate import check_tensor
+from .mesh import transform_points  # noqa: F401  (re-exported: model/view/clip transforms)
 
 Scalar = float | torch.Tensor
 
@@ -212,21 +213,3 @@ def view_from_opencv(rotation: torch.Tensor, translation: torch.Tensor) -> torch
     view[:, 3, 3] = 1.0
     flip = torch.diag(rotation.new_tensor([1.0, -1.0, -1.0, 1.0]))
     return flip @ view
-
-
-def transform_points(points: torch.Tensor, matrix: torch.Tensor) -> torch.Tensor:
-    """Apply 4x4 matrices to 3-D points, returning homogeneous coordinates.
-
-    points: ``(B, V, 3)`` or ``(V, 3)``; matrix: ``(B, 4, 4)`` or ``(4, 4)``.
-    Returns ``(B, V, 4)`` (e.g. clip-space positions for :func:`torchraster.rasterize`).
-    """
-    if points.dim() == 2:
-        points = points.unsqueeze(0)
-    if matrix.dim() == 2:
-        matrix = matrix.unsqueeze(0)
-    check_tensor("points", points, ("B", "V", 3), floating=True)
-    check_tensor("matrix", matrix, ("B", 4, 4), floating=True)
-    if points.shape[0] != matrix.shape[0] and 1 not in (points.shape[0], matrix.shape[0]):
-        raise ValueError(
-            f"points and matrix batch sizes differ: {points.shape[0]} vs {matrix.shape[0]}")
-    return points @ matrix[:, :, :3].transpose(1, 2) + matrix[:, :, 3].unsqueeze(1)

@@ -175,11 +175,18 @@ def _sample_level(
 ) -> torch.Tensor:
     """Sample one level: tex ``(B, C, h, w)`` or ``(1, C, h, w)``, u, v ``(B, H, W)`` ->
     ``(B, C, H, W)``. A batch-1 texture is sampled once for all ``B * H`` rows."""
-    h, w = tex.shape[-2:]
+    return _sample_padded(_pad(tex, *address), u, v, mode, address)
+
+
+def _sample_padded(
+    padded: torch.Tensor, u: torch.Tensor, v: torch.Tensor, mode: str, address: tuple[str, str]
+) -> torch.Tensor:
+    """:func:`_sample_level` on a texture already padded by :func:`_pad`."""
+    h, w = padded.shape[-2] - 2, padded.shape[-1] - 2
     b = u.shape[0]
+    tex = padded
     x = _remap(u, address[0]) * w - 0.5  # continuous texel index, centres at integers
     y = (1.0 - _remap(v, address[1])) * h - 0.5
-    padded = _pad(tex, *address)
     grid = torch.stack((2.0 * (x + 1.0) / (w + 1) - 1.0, 2.0 * (y + 1.0) / (h + 1) - 1.0), -1)
     if tex.shape[0] == 1 and b > 1:
         flat = grid.reshape(1, b * grid.shape[1], grid.shape[2], 2)

@@ -1,6 +1,6 @@
 """Rasterization: clipping and culling, binning, visibility and interpolation."""
 
-from .interpolate import interpolate
+from .interpolate import interpolate, interpolate_packed, to_image
 from .rasterize import Fragments, rasterize
 
-__all__ = ["Fragments", "interpolate", "rasterize"]
+__all__ = ["Fragments", "interpolate", "interpolate_packed", "rasterize", "to_image"]

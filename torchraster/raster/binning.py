@@ -127,7 +127,7 @@ def bin_triangles(
         x0_all = box[0].index_select(0, idx)
         y0_all = box[2].index_select(0, idx)
         start = 0
-        for key, count in zip(keys.tolist(), counts.tolist()):
+        for key, count in zip(keys.tolist(), counts.tolist(), strict=False):
             bh_, bw_ = divmod(key, w + 1)
             sel = slice(start, start + count)
             start += count
@@ -159,7 +159,7 @@ def _bin_large(
     marks = torch.arange(per_chunk, max(per_chunk, int(cum[-1])), per_chunk, device=cum.device)
     cuts = torch.searchsorted(cum, marks) + 1
     bounds = sorted({0, big.numel(), *cuts.clamp(max=big.numel()).tolist()})
-    for start, end in zip(bounds[:-1], bounds[1:]):
+    for start, end in zip(bounds[:-1], bounds[1:], strict=False):
         sl = slice(start, end)
         counts = n_tiles[sl]
         tri = torch.repeat_interleave(big[sl], counts)

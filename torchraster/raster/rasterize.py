@@ -55,6 +55,7 @@ class Fragments:
         self.depth_packed = depth_packed
         self.bary_dx_packed = bary_dx_packed
         self.bary_dy_packed = bary_dy_packed
+        self.front_facing: torch.Tensor | None = None  # (N,) bool, CCW in NDC
         self._cache: dict[str, torch.Tensor] = {}
 
     def _unpack(self, name: str, packed: torch.Tensor | None, fill: float):
@@ -251,9 +252,15 @@ def _fragments_from_keys(clip_pos, faces, keys, shape, derivatives) -> Fragments
     # Component-major gather: (4, B*V) -> (4, 3, N), every row a contiguous vector.
     clip_t = clip_pos.permute(2, 0, 1).reshape(4, -1)
     verts = clip_t.index_select(1, (corners + items * clip_pos.shape[1]).view(-1))
-    bary, depth, dbdx, dbdy = perspective_barycentrics(verts.view(4, 3, -1), x_ndc, y_ndc,
-                                                       derivatives)
+    verts = verts.view(4, 3, -1)
+    bary, depth, dbdx, dbdy = perspective_barycentrics(verts, x_ndc, y_ndc, derivatives)
+    with torch.no_grad():
+        x, y, _, wv = verts
+        front = (x[0] * (y[1] * wv[2] - wv[1] * y[2]) - y[0] * (x[1] * wv[2] - wv[1] * x[2])
+                 + wv[0] * (x[1] * y[2] - y[1] * x[2])) > 0
     frags = Fragments(face_id.view(b, h, w), pixels, items, corners, bary.T, depth)
+    # det[v0 v1 v2] (rows x, y, w) = w0 w1 w2 * twice the NDC area: > 0 = counter-clockwise
+    frags.front_facing = front
     if derivatives:  # per pixel step: d/d(col) = (2 / W) d/dx_ndc, d/d(row) = -(2 / H) d/dy_ndc
         frags.bary_dx_packed = (dbdx * (2.0 / w)).T
         frags.bary_dy_packed = (dbdy * (-2.0 / h)).T

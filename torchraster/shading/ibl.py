@@ -31,7 +31,9 @@ import torch.nn.functional as F
 from torchraster._validate import check_tensor
 from torchraster.shading.brdf import MIN_ROUGHNESS, d_ggx, v_smith_ggx_correlated
 from torchraster.texture import (
+    _pad,
     _sample_levels,
+    _sample_padded,
     build_mip_pyramid,
     latlong_directions,
     latlong_solid_angles,
@@ -249,7 +251,10 @@ def _prefilter_quadrature(
 def _prefilter_importance(
     src_levels: list[torch.Tensor], roughness: float, height: int, samples: int, chunk: int
 ) -> torch.Tensor:
-    """GGX importance sampling with filtered lookups (Karis 2013; Colbert & Krivanek 2007)."""
+    """GGX importance sampling with filtered lookups (Karis 2013; Colbert & Krivanek 2007).
+
+    The lod depends only on the sample (n = v), so samples are grouped by their two mip
+    levels and each group is read with two bilinear lookups and scalar weights."""
     env = src_levels[0]
     b, _, he, we = env.shape
     omega_p = (2.0 * math.pi / we) * (math.pi / he)  # equator texel of level 0
@@ -261,24 +266,33 @@ def _prefilter_importance(
     keep = n_dot_l > 0
     hs, n_dot_l = hs[keep], n_dot_l[keep]
     pdf = d_ggx(hs[:, 2], roughness) / 4.0  # pdf(l) = D (n.h) / (4 v.h), n.h = v.h
-    lod = 0.5 * torch.log2(1.0 / (samples * pdf * omega_p)) + FIS_LOD_BIAS
+    top = len(src_levels) - 1
+    lod = (0.5 * torch.log2(1.0 / (samples * pdf * omega_p)) + FIS_LOD_BIAS).clamp(0, top)
+    lo = lod.floor().long().clamp_max(max(top - 1, 0))
+    frac = (lod - lo).tolist()
+    padded: dict[int, torch.Tensor] = {}
     acc = torch.zeros(b, 3, h, 2 * h, device=env.device, dtype=env.dtype)
-    for s0 in range(0, hs.shape[0], chunk):
-        hc = hs[s0 : s0 + chunk]  # (S, 3)
-        m = hc.shape[0]
-        half = (
-            t[:, :, None] * hc[:, 0].view(1, 1, m, 1, 1)
-            + bt[:, :, None] * hc[:, 1].view(1, 1, m, 1, 1)
-            + nrm[:, :, None] * hc[:, 2].view(1, 1, m, 1, 1)
-        )  # (1, 3, S, h, 2h)
-        ldir = 2.0 * hc[:, 2].view(1, 1, m, 1, 1) * half - nrm[:, :, None]
-        uv = latlong_uv(ldir.reshape(1, 3, m * h, 2 * h))
-        lods = lod[s0 : s0 + m].view(1, 1, m, 1, 1).expand(1, 1, m, h, 2 * h)
-        vals = _sample_levels(
-            src_levels, uv[:, 0], uv[:, 1], lods.reshape(1, 1, m * h, 2 * h), ("wrap", "clamp")
-        )  # (B, 3, m h, 2h)
-        w = n_dot_l[s0 : s0 + m].view(1, 1, m, 1, 1)
-        acc = acc + (vals.view(b, 3, m, h, 2 * h) * w).sum(2)
+    for level in sorted(set(lo.tolist())):
+        idx = (lo == level).nonzero().squeeze(1)
+        for c0 in range(0, idx.numel(), chunk):
+            sel = idx[c0 : c0 + chunk]
+            m = sel.numel()
+            hc = hs[sel]
+            half = (
+                t[:, :, None] * hc[:, 0].view(1, 1, m, 1, 1)
+                + bt[:, :, None] * hc[:, 1].view(1, 1, m, 1, 1)
+                + nrm[:, :, None] * hc[:, 2].view(1, 1, m, 1, 1)
+            )  # (1, 3, S, h, 2h)
+            ldir = 2.0 * hc[:, 2].view(1, 1, m, 1, 1) * half - nrm[:, :, None]
+            uv = latlong_uv(ldir.reshape(1, 3, m * h, 2 * h))
+            w_hi = torch.tensor([frac[i] for i in sel.tolist()], dtype=env.dtype,
+                                device=env.device).view(1, 1, m, 1, 1)
+            w = n_dot_l[sel].view(1, 1, m, 1, 1)
+            for k, wk in ((level, 1.0 - w_hi), (min(level + 1, top), w_hi)):
+                if k not in padded:
+                    padded[k] = _pad(src_levels[k], "wrap", "clamp")
+                vals = _sample_padded(padded[k], uv[:, 0], uv[:, 1], "bilinear", ("wrap", "clamp"))
+                acc = acc + (vals.view(b, 3, m, h, 2 * h) * (w * wk)).sum(2)
     return acc / n_dot_l.sum()
 
 

@@ -70,7 +70,8 @@ def _check_common(lights: object, batch: int | None = None) -> tuple[int, int]:
         if f.name == "cast_shadows":
             continue
         vec = f.name in ("color", "position", "direction")
-        t = check_tensor(name, value, ("B", "L", 3) if vec else ("B", "L"), floating=True)
+        t = check_tensor(name, value, ("B", "L", 3) if vec else ("B", "L"), floating=True,
+                         finite=f.name != "range")  # range may be inf (= no range)
         if first is None:
             first = (t.shape[0], t.shape[1])
         elif (t.shape[0], t.shape[1]) != first:
@@ -247,9 +248,12 @@ def sh_basis(d: torch.Tensor) -> torch.Tensor:
     """Real SH basis Y_k(d), bands 0-2, for unit directions with xyz on dim -3.
 
     ``(..., 3, H, W) -> (..., 9, H, W)`` in the order Y00, Y1-1, Y10, Y11, Y2-2, Y2-1,
-    Y20, Y21, Y22 (Ramamoorthi & Hanrahan 2001).
+    Y20, Y21, Y22 (Ramamoorthi & Hanrahan 2001) — the same order and layout as
+    ``torchraster.shading.ibl.sh_basis``, so ``ibl.sh_project`` output can be used as
+    ``Lights.ambient``.
     """
     x, y, z = d.unbind(dim=-3)
+    r2 = x * x + y * y + z * z  # 1 for unit d; makes Y20 vanish for d = 0 (as ibl.sh_basis)
     ys = [
         torch.full_like(x, SH_C0),
         SH_C1 * y,
@@ -257,7 +261,7 @@ def sh_basis(d: torch.Tensor) -> torch.Tensor:
         SH_C1 * x,
         SH_C2 * x * y,
         SH_C2 * y * z,
-        SH_C20 * (3.0 * z * z - 1.0),
+        SH_C20 * (3.0 * z * z - r2),
         SH_C2 * x * z,
         SH_C22 * (x * x - y * y),
     ]

@@ -1,0 +1,256 @@
+"""Deferred geometry pass: only the G-buffer channels that later passes ask for.
+
+Everything is computed on the covered pixels only (packed, ``(C, N)``), then scattered into
+``(B, C, H, W)`` images. Each channel is computed only if requested, and inputs a channel
+needs (UVs, tangents, textures) are interpolated or sampled only if some requested channel
+needs them; :func:`required_inputs` states those dependencies and is tested.
+
+Channels (0 where nothing is covered unless said otherwise):
+
+=========  ===========  =====================================================================
+name       shape        meaning
+=========  ===========  =====================================================================
+depth      (B, 1, H, W) linear view depth (distance along the view axis); 0 where empty
+position   (B, 3, H, W) world position
+normal     (B, 3, H, W) unit world shading normal (normal map applied), facing the camera
+albedo     (B, 3, H, W) linear base colour (factor x texture)
+alpha      (B, 1, H, W) base colour alpha (coverage x material alpha)
+metallic   (B, 1, H, W) factor x texture B channel
+roughness  (B, 1, H, W) perceptual roughness, factor x texture G channel
+ao         (B, 1, H, W) 1 + strength (occlusion R - 1); 1 where no texture
+emissive   (B, 3, H, W) linear emitted radiance (factor x texture)
+mask       (B, 1, H, W) 1 covered, 0 empty
+face_id    (B, 1, H, W) int64 face index, -1 where empty
+uv         (B, 2, H, W) texture coordinates
+=========  ===========  =====================================================================
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+
+import torch
+
+from .material import Material
+from .raster import Fragments, interpolate_packed, to_image
+from .texture import MipTexture
+
+CHANNELS = ("depth", "position", "normal", "albedo", "alpha", "metallic", "roughness", "ao",
+            "emissive", "mask", "face_id", "uv")
+_MATERIAL_CHANNELS = {"albedo", "alpha", "metallic", "roughness", "ao", "emissive", "normal"}
+_SLOTS = {"albedo": "base_color", "alpha": "base_color", "metallic": "metallic_roughness",
+          "roughness": "metallic_roughness", "ao": "occlusion", "emissive": "emissive",
+          "normal": "normal"}
+
+
+def check_channels(channels: Iterable[str]) -> set[str]:
+    """Validate a set of channel names (error names the unknown ones)."""
+    channels = set(channels)
+    unknown = channels - set(CHANNELS)
+    if unknown:
+        raise ValueError(f"channels: unknown {sorted(unknown)}; expected some of {CHANNELS}")
+    return channels
+
+
+def required_inputs(channels: Iterable[str], materials: Sequence[Material | None]) -> set[str]:
+    """Which inputs the requested channels need: a subset of
+    {"position", "normal", "uv", "uv_derivatives", "tangent", "texture:<slot>"}."""
+    channels = check_channels(channels)
+    need: set[str] = set()
+    if channels & {"position", "depth"}:
+        need.add("position")
+    if "normal" in channels:
+        need.add("normal")
+    for ch in channels & _MATERIAL_CHANNELS:
+        slot = _SLOTS[ch]
+        if any(m is not None and getattr(m, slot + "_texture") is not None for m in materials):
+            need |= {"uv", "uv_derivatives", "texture:" + slot}
+            if ch == "normal":
+                need.add("tangent")
+    if "uv" in channels:
+        need.add("uv")
+    return need
+
+
+def geometry_pass(
+    frags: Fragments,
+    channels: Iterable[str],
+    positions: torch.Tensor,
+    view: torch.Tensor,
+    normals: torch.Tensor | None = None,
+    uvs: torch.Tensor | None = None,
+    tangents: torch.Tensor | None = None,
+    face_material: torch.Tensor | None = None,
+    materials: Sequence[Material | None] = (),
+    texture_filter: str = "trilinear",
+    texture_cache: dict | None = None,
+) -> dict[str, torch.Tensor]:
+    """Compute the requested G-buffer channels (see the module table).
+
+    frags: from ``rasterize(..., derivatives=True)`` when textures are sampled trilinearly.
+    positions: (B, V, 3) or (V, 3) world positions; view: (B, 4, 4) world -> view.
+    normals: (B, V, 3) or (V, 3) vertex normals (None: flat face normals are not available
+    here, pass ``mesh.vertex_normals``); uvs: (V, 2) / (B, V, 2); tangents: (V, 4) / (B, V, 4).
+    face_material: (F,) int64 index into ``materials`` (None: material 0 for every face).
+    texture_cache: dict reused across calls to keep mip pyramids of constant textures.
+    Returns {channel: (B, C, H, W)} for exactly the requested channels.
+    """
+    channels = check_channels(channels)
+    need = required_inputs(channels, materials)
+    out: dict[str, torch.Tensor] = {}
+    dtype = positions.dtype
+    n = frags.pixels.numel()
+    if "mask" in channels:
+        out["mask"] = frags.mask.to(dtype)
+    if "face_id" in channels:
+        out["face_id"] = frags.face_id.unsqueeze(1)
+    if not channels - {"mask", "face_id"}:
+        return out
+
+    pos = interpolate_packed(positions, frags)[0] if "position" in need else None  # (3, N)
+    if "position" in channels:
+        out["position"] = to_image(pos, frags)
+    if "depth" in channels:
+        rows = view.to(dtype).expand(frags.face_id.shape[0], 4, 4)[:, 2].index_select(
+            0, frags.items)  # (N, 4) third row of each pixel's view matrix
+        z_view = (rows[:, :3] * pos.T).sum(-1) + rows[:, 3]
+        out["depth"] = to_image(-z_view[None], frags)
+
+    uv = duv_dx = duv_dy = None
+    if "uv" in need:
+        if uvs is None:
+            raise ValueError("uvs: required by the requested channels / textured materials")
+        deriv = "uv_derivatives" in need and frags.bary_dx_packed is not None
+        uv, duv_dx, duv_dy = interpolate_packed(uvs.to(dtype), frags, derivatives=deriv)
+        if "uv" in channels:
+            out["uv"] = to_image(uv, frags)
+
+    # Per-pixel material index (N,)
+    if face_material is not None and len(materials) > 1:
+        face = frags.face_id.view(-1).index_select(0, frags.pixels)
+        mat_index = face_material.to(frags.pixels.device).index_select(0, face)
+    else:
+        mat_index = torch.zeros(n, dtype=torch.long, device=frags.pixels.device)
+    mats = list(materials) or [None]
+
+    def sample(slot: str, m: int, sel: torch.Tensor) -> torch.Tensor | None:
+        """Sample material m's texture ``slot`` at the packed pixels ``sel`` -> (C, n_sel)."""
+        mat = mats[m]
+        if mat is None or getattr(mat, slot + "_texture") is None:
+            return None
+        key = (id(mat), slot, dtype)
+        cache = texture_cache if texture_cache is not None else {}
+        if key not in cache:
+            tex = mat.texture(slot, dtype=dtype, device=frags.pixels.device)
+            cache[key] = MipTexture(tex[None], address="wrap")
+        grid = uv.index_select(1, sel)[None, :, None, :]  # (1, 2, 1, n_sel)
+        if duv_dx is not None and texture_filter == "trilinear":
+            ddx = duv_dx.index_select(1, sel)[None, :, None, :]
+            ddy = duv_dy.index_select(1, sel)[None, :, None, :]
+            val = cache[key].sample(grid, ddx, ddy, filter="trilinear")
+        else:
+            val = cache[key].sample(grid, filter="bilinear" if texture_filter != "nearest"
+                                    else "nearest")
+        return val[0, :, 0]
+
+    need_material = channels & {"albedo", "alpha", "metallic", "roughness", "ao", "emissive"}
+    packed: dict[str, torch.Tensor] = {}
+    if need_material:
+        sizes = {"albedo": 3, "alpha": 1, "metallic": 1, "roughness": 1, "ao": 1, "emissive": 3}
+        for ch in need_material:
+            packed[ch] = positions.new_zeros(sizes[ch], n)
+        for m in range(len(mats)):
+            sel = (mat_index == m).nonzero().squeeze(1) if len(mats) > 1 else None
+            if sel is not None and sel.numel() == 0:
+                continue
+            if sel is None:
+                sel = torch.arange(n, device=mat_index.device)
+            values = _material_values(mats[m], need_material, lambda s, m=m, sel=sel: sample(
+                s, m, sel), sel.numel(), positions)
+            for ch, v in values.items():
+                packed[ch] = packed[ch].index_copy(1, sel, v.expand(-1, sel.numel()))
+        for ch in need_material:
+            out[ch] = to_image(packed[ch], frags, fill=0.0)
+
+    if "normal" in channels:
+        if normals is None:
+            raise ValueError("normals: vertex normals are required for the 'normal' channel")
+        nrm = interpolate_packed(normals.to(dtype), frags)[0]  # (3, N)
+        if "tangent" in need and tangents is not None:
+            tan = interpolate_packed(tangents.to(dtype), frags)[0]  # (4, N)
+            nrm = _apply_normal_maps(nrm, tan, mats, mat_index, sample)
+        nrm = _normalize(nrm)
+        if frags.front_facing is not None:  # back faces are seen from behind: flip
+            nrm = torch.where(frags.front_facing[None], nrm, -nrm)
+        out["normal"] = to_image(nrm, frags)
+    return out
+
+
+def _normalize(v: torch.Tensor, dim: int = 0) -> torch.Tensor:
+    """Unit vectors along ``dim``; zero vectors stay zero with finite gradients."""
+    sq = (v * v).sum(dim, keepdim=True)
+    ok = sq > 0
+    return torch.where(ok, v * torch.rsqrt(torch.where(ok, sq, torch.ones_like(sq))), v * 0)
+
+
+def _factor(value, like: torch.Tensor) -> torch.Tensor:
+    return torch.as_tensor(value, dtype=like.dtype, device=like.device)
+
+
+def _material_values(mat: Material | None, channels: set[str], sample, n: int,
+                     like: torch.Tensor) -> dict[str, torch.Tensor]:
+    """glTF metallic-roughness values of one material at its pixels, each (C, n) or (C, 1)."""
+    mat = mat if mat is not None else Material()
+    out = {}
+    if channels & {"albedo", "alpha"}:
+        base = _factor(mat.base_color_factor, like).reshape(4, 1)
+        tex = sample("base_color")
+        if tex is not None:
+            if tex.shape[0] == 3:
+                tex = torch.cat([tex, torch.ones_like(tex[:1])])
+            base = base * tex
+        out["albedo"], out["alpha"] = base[:3], base[3:4]
+    if channels & {"metallic", "roughness"}:
+        metallic = _factor(mat.metallic_factor, like).reshape(1, 1)
+        roughness = _factor(mat.roughness_factor, like).reshape(1, 1)
+        tex = sample("metallic_roughness")
+        if tex is not None:
+            roughness = roughness * tex[1:2]
+            metallic = metallic * tex[2:3]
+        out["metallic"], out["roughness"] = metallic, roughness
+    if "ao" in channels:
+        tex = sample("occlusion")
+        ao = like.new_ones(1, 1)
+        if tex is not None:
+            ao = 1.0 + mat.occlusion_strength * (tex[:1] - 1.0)
+        out["ao"] = ao
+    if "emissive" in channels:
+        emissive = _factor(mat.emissive_factor, like).reshape(3, 1)
+        tex = sample("emissive")
+        out["emissive"] = emissive * tex[:3] if tex is not None else emissive
+    return {k: v for k, v in out.items() if k in channels}
+
+
+def _apply_normal_maps(nrm, tan, mats, mat_index, sample) -> torch.Tensor:
+    """Perturb interpolated normals (3, N) by each material's tangent-space normal map.
+
+    glTF: n' = normalize(T x + B y + N z) with (x, y, z) = (2 tex - 1) * (scale, scale, 1)
+    and B = w (N x T) (w = tangent handedness).
+    """
+    n_geo = _normalize(nrm)
+    t = _normalize(tan[:3] - (tan[:3] * n_geo).sum(0, keepdim=True) * n_geo)  # Gram-Schmidt
+    bit = torch.linalg.cross(n_geo, t, dim=0) * torch.where(tan[3:4] < 0, -1.0, 1.0)
+    out = nrm
+    for m, mat in enumerate(mats):
+        if mat is None or mat.normal_texture is None:
+            continue
+        sel = (mat_index == m).nonzero().squeeze(1)
+        if sel.numel() == 0:
+            continue
+        tex = sample("normal", m, sel)
+        xyz = tex[:3] * 2.0 - 1.0
+        xyz = xyz * xyz.new_tensor([mat.normal_scale, mat.normal_scale, 1.0])[:, None]
+        mapped = (t.index_select(1, sel) * xyz[0:1] + bit.index_select(1, sel) * xyz[1:2]
+                  + n_geo.index_select(1, sel) * xyz[2:3])
+        out = out.index_copy(1, sel, mapped)
+    return out

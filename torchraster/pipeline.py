@@ -1,0 +1,266 @@
+"""From a validated render config to images on disk.
+
+    import torchraster as tr
+    cfg = tr.load_config("configs/quickstart.yaml")
+    tr.render_to_files(cfg, "out/")          # or: views = tr.render_config(cfg)
+
+Every file is written atomically (a temporary file in the same folder, then a rename), so a
+crash never leaves a half-written image behind.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import kornia
+import numpy as np
+import torch
+
+from . import camera
+from .config import CameraConfig, ConfigError, RenderFile, TransformConfig
+from .hdr_io import read_hdr
+from .io import load_scene, load_texture
+from .mesh import flat as flat_mesh
+from .post.chain import PostChain
+from .renderer import Renderer, RenderScene
+from .shading.ibl import Environment
+from .shading.lights import lights_from_config
+
+_SRGB_CHANNELS = {"albedo", "emissive"}  # linear G-buffer colours; "color" is encoded
+
+
+@dataclass
+class ViewResult:
+    """One rendered camera: ``name`` and ``images`` {channel: (C, H, W) float tensor}
+    (color already tone mapped / encoded to display sRGB in [0, 1]), plus the ``plan``."""
+
+    name: str
+    images: dict[str, torch.Tensor]
+    plan: list[str]
+
+
+def _transform_matrix(t: TransformConfig) -> torch.Tensor:
+    """(4, 4) model -> world: scale, then rotations about x, y, z (degrees), then translate."""
+    scale = torch.tensor(t.scale if isinstance(t.scale, list) else [t.scale] * 3)
+    angles = torch.deg2rad(torch.tensor(t.rotate_deg))[None]
+    rx, ry, rz = (kornia.geometry.conversions.axis_angle_to_rotation_matrix(
+        torch.eye(3)[i:i + 1] * angles[0, i]) for i in range(3))
+    m = torch.eye(4)
+    m[:3, :3] = (rz @ ry @ rx)[0] * scale
+    m[:3, 3] = torch.tensor(t.translate)
+    return m
+
+
+def build_scene(cfg: RenderFile) -> RenderScene:
+    """Load and transform the config's scene into a :class:`RenderScene` (names the file on
+    error)."""
+    path = cfg.resolve(cfg.scene.mesh)
+    scene = load_scene(path, max_texture_size=cfg.scene.max_texture_size)
+    mesh, face_material, materials = scene.flatten()
+    if cfg.scene.normals == "flat":
+        mesh = flat_mesh(mesh)
+    m = _transform_matrix(cfg.scene.transform)
+    positions = mesh.positions @ m[:3, :3].T + m[:3, 3]
+    normals = None
+    if mesh.normals is not None and cfg.scene.normals != "smooth":
+        normals = torch.nn.functional.normalize(mesh.normals @ torch.linalg.inv(m[:3, :3]), dim=-1)
+    materials = [_override(mat, cfg) for mat in materials]
+    return RenderScene(positions, mesh.faces, normals, mesh.uvs, mesh.tangents, face_material,
+                       materials)
+
+
+def _override(mat, cfg: RenderFile):
+    from dataclasses import replace
+    for o in cfg.materials:
+        if o.match != "*" and (mat is None or mat.name != o.match):
+            continue
+        from .material import Material
+        mat = mat if mat is not None else Material()
+        changes = {}
+        if o.base_color is not None:
+            rgba = list(o.base_color) + ([1.0] if len(o.base_color) == 3 else [])
+            changes["base_color_factor"] = torch.tensor(rgba)
+        if o.metallic is not None:
+            changes["metallic_factor"] = o.metallic
+        if o.roughness is not None:
+            changes["roughness_factor"] = o.roughness
+        if o.emissive is not None:
+            changes["emissive_factor"] = torch.tensor(o.emissive)
+        if o.base_color_texture is not None:
+            changes["base_color_texture"] = load_texture(
+                cfg.resolve(o.base_color_texture), max_size=cfg.scene.max_texture_size)
+        mat = replace(mat, **changes)
+    return mat
+
+
+def build_camera(cam: CameraConfig, positions: torch.Tensor, resolution: tuple[int, int]
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """World -> view and projection matrices (1, 4, 4) of one camera, framing the scene's
+    bounding sphere where distances or planes are left out."""
+    h, w = resolution
+    lo, hi = positions.amin(0), positions.amax(0)
+    center = (lo + hi) / 2
+    radius = float((positions - center).norm(dim=-1).max().clamp(min=1e-6))
+    if cam.look_at is not None:
+        view = camera.look_at(cam.look_at.eye, cam.look_at.target, cam.look_at.up)
+        distance = float((torch.tensor(cam.look_at.eye) - torch.tensor(cam.look_at.target)).norm())
+    else:
+        o = cam.orbit
+        target = o.target if o.target is not None else center.tolist()
+        fov = math.radians(cam.fov_deg)
+        distance = o.distance or radius / math.sin(min(fov, fov * w / h) / 2) * 1.05
+        view = camera.orbit(o.azimuth_deg, o.elevation_deg, distance, target)
+    near = cam.near or max(distance - 2 * radius, distance * 1e-3, 1e-4)
+    far = cam.far or math.inf
+    if cam.projection == "orthographic":
+        half_h = (cam.ortho_height or 2.2 * radius) / 2
+        half_w = half_h * w / h
+        far = cam.far or distance + 4 * radius
+        near = cam.near or max(distance - 4 * radius, 1e-4)
+        proj = camera.orthographic(-half_w, half_w, -half_h, half_h, near, far)
+    elif cam.intrinsics is not None:
+        k = cam.intrinsics
+        proj = camera.from_intrinsics(k.fx, k.fy, k.cx, k.cy, w, h, near, far, cam.reverse_z)
+    else:
+        proj = camera.perspective(cam.fov_deg, w / h, near, far, cam.reverse_z)
+    return view, proj
+
+
+def _encode(name: str, img: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Display encoding of a G-buffer channel (C, H, W) in [0, 1] for PNG."""
+    if name in _SRGB_CHANNELS:
+        return kornia.color.linear_rgb_to_rgb(img.clamp(0, 1)[None])[0]
+    if name == "normal":
+        return (img * 0.5 + 0.5) * mask
+    if name == "depth":  # near = bright, far = dark, empty = black
+        valid = mask[0] > 0
+        if not bool(valid.any()):
+            return torch.zeros_like(img)
+        d = img[0][valid]
+        lo, hi = float(d.min()), float(d.max())
+        return ((hi - img) / max(hi - lo, 1e-12)).clamp(0, 1) * mask
+    if name == "face_id":
+        return ((img + 1) % 65536).float() / 65535.0
+    if name == "uv":
+        return torch.cat([img.clamp(0, 1), torch.zeros_like(img[:1])])
+    return img.clamp(0, 1)
+
+
+def render_config(cfg: RenderFile, device: str | torch.device = "cpu") -> list[ViewResult]:
+    """Render every camera of a config. Returns one :class:`ViewResult` per camera."""
+    scene = build_scene(cfg)
+    scene = RenderScene(*(t.to(device) if isinstance(t, torch.Tensor) else t for t in (
+        scene.positions, scene.faces, scene.normals, scene.uvs, scene.tangents,
+        scene.face_material)), [m.to(device) if m is not None else None for m in scene.materials])
+    res = cfg.render.size
+    lights = lights_from_config(cfg.lights, 1, device) if cfg.lights else None
+    env = None
+    if cfg.environment is not None:
+        radiance = read_hdr(cfg.resolve(cfg.environment.path)).to(device)
+        env = Environment(radiance, yaw=math.radians(cfg.environment.rotation_deg),
+                          intensity=cfg.environment.intensity)
+    renderer = Renderer(res, shading=cfg.render.shading, supersample=cfg.render.supersample,
+                        cull_backfaces=cfg.render.cull_backfaces,
+                        background=cfg.render.background,
+                        environment_background=bool(env and cfg.environment.background))
+    post = PostChain.from_config(cfg.post) if cfg.post is not None else None
+    channels = set(cfg.outputs.channels) - {"color", "alpha"}
+    if post is not None and post.dof.enabled:
+        channels.add("depth")
+    results = []
+    for i, cam in enumerate(cfg.cameras):
+        view, proj = build_camera(cam, scene.positions.cpu(), res)
+        with torch.no_grad():
+            out = renderer(scene, view.to(device), proj.to(device), lights, env, channels)
+            if post is not None:
+                depth = out.gbuffer.get("depth")
+                if depth is not None:  # the background is far away for depth of field
+                    far = depth.amax().clamp(min=1.0) * 100
+                    depth = torch.where(out.alpha > 0, depth, far)
+                color = post(out.image, depth=depth)
+            else:
+                color = kornia.color.linear_rgb_to_rgb(out.image.clamp(0, 1))
+        images = {"color": color[0], "alpha": out.alpha[0]}
+        images.update({k: v[0] for k, v in out.gbuffer.items()})
+        mask = (out.alpha[0] > 0).to(color.dtype)
+        images = {k: v for k, v in images.items() if k in cfg.outputs.channels}
+        results.append(ViewResult(cam.name or f"view{i}", images, out.plan))
+        results[-1].mask = mask  # used by write_outputs for display encodings
+    return results
+
+
+def _atomic_write(path: Path, write) -> None:
+    """Write through a temporary file in the same folder, then rename over ``path``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix="." + path.stem + ".", suffix=path.suffix)
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def write_outputs(result: ViewResult, out_dir: str | Path, formats: list[str]) -> list[Path]:
+    """Write a view's channels as ``<out_dir>/<channel>.<fmt>``; returns the written paths."""
+    from skimage import io as skio
+
+    out_dir = Path(out_dir)
+    written = []
+    mask = getattr(result, "mask", None)
+    for name, img in result.images.items():
+        img = img.detach().float().cpu()
+        if "png" in formats:
+            m = mask if mask is not None else torch.ones_like(img[:1])
+            enc = _encode(name, img.to(torch.float64) if name == "face_id" else img, m)
+            bits16 = name in ("depth", "face_id")
+            arr = enc.clamp(0, 1).permute(1, 2, 0).numpy()
+            arr = (arr * (65535 if bits16 else 255) + 0.5).astype(np.uint16 if bits16 else np.uint8)
+            arr = arr[..., 0] if arr.shape[-1] == 1 else arr
+            path = out_dir / f"{name}.png"
+            _atomic_write(path, lambda p, a=arr: skio.imsave(p, a, check_contrast=False))
+            written.append(path)
+        if "npy" in formats:
+            path = out_dir / f"{name}.npy"
+            _atomic_write(path, lambda p, a=img.numpy(): np.save(p, a))
+            written.append(path)
+        if "exr" in formats:
+            path = out_dir / f"{name}.exr"
+            _atomic_write(path, lambda p, a=img.numpy(): _write_exr(p, a))
+            written.append(path)
+    return written
+
+
+def _write_exr(path: str, image: np.ndarray) -> None:
+    import OpenEXR
+
+    names = {1: ["Y"], 2: ["U", "V"], 3: ["R", "G", "B"], 4: ["R", "G", "B", "A"]}[image.shape[0]]
+    channels = {n: np.ascontiguousarray(image[i].astype(np.float32)) for i, n in enumerate(names)}
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION}, channels) as f:
+        f.write(path)
+
+
+def check_formats(cfg: RenderFile, source: str) -> None:
+    """Fail before rendering if an output format needs a package that is missing."""
+    if "exr" in cfg.outputs.formats and importlib.util.find_spec("OpenEXR") is None:
+        raise ConfigError(f"{source}: outputs.formats: 'exr' needs the OpenEXR package "
+                          "(pip install 'torchraster[exr]')")
+
+
+def render_to_files(cfg: RenderFile, out_dir: str | Path, device: str = "cpu") -> list[Path]:
+    """Render every camera of ``cfg`` into ``out_dir`` (one sub-folder per camera when there
+    are several). Returns the written paths."""
+    check_formats(cfg, "config")
+    results = render_config(cfg, device)
+    written = []
+    for r in results:
+        folder = Path(out_dir) / r.name if len(results) > 1 else Path(out_dir)
+        written += write_outputs(r, folder, cfg.outputs.formats)
+    return written
