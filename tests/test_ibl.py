@@ -90,12 +90,17 @@ def test_sh_irradiance_analytic_band_limited_env() -> None:
 
 
 def test_sh_irradiance_vs_brute_force_smooth_env() -> None:
-    env = _smooth_env(32)
+    # a broad sun (lobe exp(3 (cos - 1))): order-2 SH is within ~1 % of the brute force; a
+    # sharp sun is not band-limited (see test_sh_irradiance_real_env)
+    d = latlong_directions(32, 64, dtype=D64)
+    sun = F.normalize(torch.tensor([0.5, 0.4, -0.6], dtype=D64), dim=0).view(1, 3, 1, 1)
+    env = 0.3 + 0.2 * d[:, 1:2] + 4.0 * torch.exp(3.0 * ((d * sun).sum(1, keepdim=True) - 1))
+    env = env * torch.tensor([1.0, 0.8, 0.6], dtype=D64).view(1, 3, 1, 1)
     n = _unit(60, seed=1)
     e = irradiance_sh(sh_project(env), n)[:, :, 0]
     ref = _brute_irradiance(env, n)
     rel = (e - ref).abs() / ref
-    assert float(rel.mean()) < 0.01 and float(rel.max()) < 0.03, (rel.mean(), rel.max())
+    assert float(rel.mean()) < 0.01 and float(rel.max()) < 0.02, (rel.mean(), rel.max())
 
 
 def test_sh_irradiance_real_env(shared_data: Path) -> None:
@@ -118,9 +123,10 @@ def test_sh_irradiance_real_env(shared_data: Path) -> None:
 
 def test_uniform_env_prefilters_to_itself() -> None:
     env = torch.full((1, 3, 16, 32), 2.5, dtype=D64)
-    chain = prefilter_specular(env, size=16, levels=5, samples=16)
-    for level in chain:
-        torch.testing.assert_close(level, torch.full_like(level, 2.5))
+    for budget in (0, 2**20):  # all importance sampled / rough levels by quadrature
+        chain = prefilter_specular(env, size=16, levels=5, samples=16, quadrature_budget=budget)
+        for level in chain:
+            torch.testing.assert_close(level, torch.full_like(level, 2.5))
 
 
 def test_roughness_lod_mapping_roundtrip() -> None:
@@ -130,10 +136,20 @@ def test_roughness_lod_mapping_roundtrip() -> None:
     assert lod_to_roughness(0, 6) == 0.0 and lod_to_roughness(5, 6) == 1.0
 
 
+@pytest.fixture(scope="module")
+def smooth_environment() -> Environment:
+    # float32 precomputation (the default dtype); the reference is float64
+    ev = Environment(_smooth_env(32).float(), specular_size=32, specular_levels=8,
+                     specular_samples=64)
+    ev.specular_chain  # noqa: B018  (precompute once for the module)
+    return ev
+
+
 @pytest.mark.parametrize("rough", [0.1, 0.5, 1.0])
-def test_prefiltered_specular_vs_brute_force(rough: float) -> None:
-    env = _smooth_env(32)
-    ev = Environment(env, specular_size=32, specular_levels=8, specular_samples=64)
+def test_prefiltered_specular_vs_brute_force(rough: float, smooth_environment: Environment
+                                             ) -> None:
+    ev = smooth_environment
+    env = ev.radiance.double()
     n = _unit(40, seed=3)
     got = ev.specular(n, torch.full((1, 1, 1, 40), rough, dtype=D64))[:, :, 0]
     ref = _brute_lobe(env, n, rough)
@@ -149,7 +165,7 @@ def test_prefiltered_specular_real_env_levels(shared_data: Path) -> None:
 
     img = read_hdr(shared_data / "envmaps" / "venice_sunset_1k.hdr")[None].to(D64)
     env = F.adaptive_avg_pool2d(img, (32, 64))
-    ev = Environment(env, specular_size=32, specular_levels=6, specular_samples=64)
+    ev = Environment(env.float(), specular_size=32, specular_levels=6, specular_samples=64)
     n = _unit(30, seed=4)
     for k in (3, 5):  # r = 0.37 (importance sampled), r = 1 (quadrature)
         r = lod_to_roughness(k, 6)
@@ -193,7 +209,8 @@ def test_dfg_lut_cached_and_sized() -> None:
     t1 = dfg_lut(16, 64)
     assert t1.shape == (2, 16, 16) and t1.dtype == torch.float32
     assert dfg_lut(16, 64) is not t1  # cast copy, but the table itself is cached
-    assert bool((t1 >= 0).all()) and bool((t1.sum(0) <= 1.0 + 1e-6).all())
+    # A + B is a directional albedo: <= 1 up to the sampling error of the table
+    assert bool((t1 >= 0).all()) and bool((t1.sum(0) <= 1.005).all())
 
 
 # ------------------------------------------------------------------------ white furnace
@@ -268,11 +285,11 @@ def test_gradcheck_ibl_lookup() -> None:
 
 def test_gradcheck_shade_ibl() -> None:
     env = Environment(_smooth_env(8), specular_size=8, specular_levels=4, specular_samples=8)
-    n, v = _surface(2, 2, seed=5)
+    n, v = _surface(1, 2, seed=5)
     n = n.requires_grad_()
-    albedo = torch.rand(1, 3, 2, 2, dtype=D64, requires_grad=True)
-    metal = (torch.rand(1, 1, 2, 2, dtype=D64) * 0.8 + 0.1).requires_grad_()
-    rough = (torch.rand(1, 1, 2, 2, dtype=D64) * 0.8 + 0.1).requires_grad_()
+    albedo = torch.rand(1, 3, 1, 2, dtype=D64, requires_grad=True)
+    metal = (torch.rand(1, 1, 1, 2, dtype=D64) * 0.8 + 0.1).requires_grad_()
+    rough = (torch.rand(1, 1, 1, 2, dtype=D64) * 0.8 + 0.1).requires_grad_()
     torch.autograd.gradcheck(
         lambda nn, a, m, r: shade_ibl(nn, v, a, m, r, None, env, lut_size=16, lut_samples=64),
         (n, albedo, metal, rough),

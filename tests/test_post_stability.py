@@ -19,6 +19,17 @@ from torchraster.post import (
     ToneMap,
 )
 
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """These tensors are tiny: intra-op threads only add overhead on a shared 2-core box
+    (measured 50x slower per op under load)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 D = torch.float64
 KS = torch.tensor([9.0, 9.0, 3.5, 3.5], dtype=D)  # intrinsics for 8x8 images
 
@@ -60,9 +71,10 @@ def test_gradcheck_auto_exposure_wrt_image_and_compensation(metering: str) -> No
 
 
 def test_gradcheck_bloom_wrt_image_and_intensity() -> None:
-    mod = Bloom(threshold=0.8, knee=0.5, levels=3, karis=True)
-    assert gradcheck(lambda x, i: Bloom(0.8, 0.5, i, 1.0, 3, True)(x), (_x(), _scalar(0.3)))
-    assert gradcheck(mod, (_x(),))
+    def f(x: torch.Tensor, intensity: torch.Tensor) -> torch.Tensor:
+        return Bloom(threshold=0.8, knee=0.5, intensity=intensity, levels=3, karis=True)(x)
+
+    assert gradcheck(f, (_x(), _scalar(0.3)))
 
 
 def test_gradcheck_dof_wrt_image_focus_and_aperture() -> None:
@@ -172,6 +184,6 @@ def test_ssao_hostile_depth_and_zero_normals(dtype: torch.dtype) -> None:
     ao = SSAO(samples=8)(depth.to(dtype), normals.to(dtype), intrinsics=torch.tensor(
         [14.0, 14.0, 7.5, 7.5]))
     assert ao.dtype == dtype and bool(torch.isfinite(ao).all())
-    assert float(ao.min()) >= 0 and float(ao.max()) <= 1
+    assert float(ao.detach().min()) >= 0 and float(ao.detach().max()) <= 1
     ao.float().sum().backward()
     assert bool(torch.isfinite(depth.grad).all()) and bool(torch.isfinite(normals.grad).all())

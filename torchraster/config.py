@@ -210,8 +210,12 @@ def parse_config(text: str, source: str = "<string>", base_dir: Path | None = No
         node = yaml.compose(text, Loader=yaml.SafeLoader)
         data = yaml.safe_load(text)
     except yaml.MarkedYAMLError as e:
-        line = e.problem_mark.line + 1 if e.problem_mark else "?"
-        raise ConfigError(f"{source}:{line}: malformed YAML: {e.problem}") from None
+        mark = e.context_mark or e.problem_mark  # where the broken construct starts
+        line = mark.line + 1 if mark else "?"
+        detail = f"{e.context}; {e.problem}" if e.context else str(e.problem)
+        if e.problem_mark and mark is not e.problem_mark:
+            detail += f" (line {e.problem_mark.line + 1})"
+        raise ConfigError(f"{source}:{line}: malformed YAML: {detail}") from None
     except yaml.YAMLError as e:
         raise ConfigError(f"{source}: malformed YAML: {e}") from None
     if not isinstance(data, dict):

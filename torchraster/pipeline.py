@@ -217,6 +217,7 @@ def write_outputs(result: ViewResult, out_dir: str | Path, formats: list[str]) -
     mask = getattr(result, "mask", None)
     for name, img in result.images.items():
         img = img.detach().float().cpu()
+        raw = img.numpy()
         if "png" in formats:
             m = mask if mask is not None else torch.ones_like(img[:1])
             enc = _encode(name, img.to(torch.float64) if name == "face_id" else img, m)
@@ -229,11 +230,11 @@ def write_outputs(result: ViewResult, out_dir: str | Path, formats: list[str]) -
             written.append(path)
         if "npy" in formats:
             path = out_dir / f"{name}.npy"
-            _atomic_write(path, lambda p, a=img.numpy(): np.save(p, a))
+            _atomic_write(path, lambda p, a=raw: np.save(p, a))
             written.append(path)
         if "exr" in formats:
             path = out_dir / f"{name}.exr"
-            _atomic_write(path, lambda p, a=img.numpy(): _write_exr(p, a))
+            _atomic_write(path, lambda p, a=raw: _write_exr(p, a))
             written.append(path)
     return written
 

@@ -29,7 +29,14 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .blur import check_image, compute_dtype, gaussian_blur, per_sample, separable_filter
+from .blur import (
+    check_image,
+    compute_dtype,
+    gaussian_blur,
+    per_sample,
+    separable_filter,
+    to_output_dtype,
+)
 
 #: Brightness floor of the bright-pass division (linear units): below it the contribution
 #: factor's denominator is clamped, so black and denormal pixels stay finite.
@@ -164,4 +171,4 @@ class Bloom(nn.Module):
         levels = min(self.levels, max_levels(*x.shape[-2:]))
         bright = bright_pass(xc, self.threshold, self.knee)
         glow = bloom_levels(bright, levels, self.radius, self.karis)
-        return (xc + intensity * glow / levels).to(x.dtype)
+        return to_output_dtype(xc + intensity * glow / levels, x.dtype)

@@ -38,6 +38,16 @@ def compute_dtype(dtype: torch.dtype) -> torch.dtype:
     return torch.float32 if dtype in (torch.float16, torch.bfloat16) else dtype
 
 
+def to_output_dtype(y: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """Cast a float32/64 result back to the input ``dtype``; half-precision results are
+    saturated to that dtype's largest finite value first (e.g. exposing 6e4 by +3 EV in
+    float16 gives 65504, not inf)."""
+    if dtype in (torch.float16, torch.bfloat16):
+        big = torch.finfo(dtype).max
+        return y.clamp(-big, big).to(dtype)
+    return y.to(dtype)
+
+
 def check_image(name: str, x: object, channels: int | None = None) -> torch.Tensor:
     """Validate a ``(B, C, H, W)`` floating image (``C == channels`` when given)."""
     return check_tensor(name, x, ("B", channels if channels else "C", "H", "W"), floating=True)
@@ -110,7 +120,7 @@ def gaussian_blur(x: torch.Tensor, sigma: float, border: str = "replicate") -> t
     if sigma <= 0:
         return x
     k = gaussian_kernel1d(float(sigma), device=x.device, dtype=compute_dtype(x.dtype))
-    return separable_filter(x.to(k.dtype), k, k, border).to(x.dtype)
+    return to_output_dtype(separable_filter(x.to(k.dtype), k, k, border), x.dtype)
 
 
 class GaussianBlur(nn.Module):

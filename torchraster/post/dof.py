@@ -34,7 +34,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .._validate import check_tensor
-from .blur import check_image, compute_dtype, gaussian_blur, per_sample
+from .blur import check_image, compute_dtype, gaussian_blur, per_sample, to_output_dtype
 
 #: Depth floor (metres) before dividing by depth: 1 micrometre, far below any near plane.
 DEPTH_FLOOR = 1e-6
@@ -178,4 +178,4 @@ class DepthOfField(nn.Module):
             self.f_number if f_number is None else f_number,
             self.sensor_width_mm,
         )
-        return depth_of_field(x.to(dt), coc, self.max_coc, self.levels).to(x.dtype)
+        return to_output_dtype(depth_of_field(x.to(dt), coc, self.max_coc, self.levels), x.dtype)

@@ -23,7 +23,7 @@ import math
 import torch
 from torch import nn
 
-from .blur import check_image, compute_dtype, per_sample
+from .blur import check_image, compute_dtype, per_sample, to_output_dtype
 
 #: Rec. 709 / sRGB luminance weights.
 REC709 = (0.2126, 0.7152, 0.0722)
@@ -150,4 +150,4 @@ class AutoExposure(nn.Module):
         self.adapted_log2_lum = adapted.detach()
         ev = self.target_ev(adapted, xc)
         self.last_ev = ev.detach()
-        return (xc * torch.exp2(ev).reshape(-1, 1, 1, 1)).to(x.dtype)
+        return to_output_dtype(xc * torch.exp2(ev).reshape(-1, 1, 1, 1), x.dtype)

@@ -23,7 +23,7 @@ import kornia
 import torch
 from torch import nn
 
-from .blur import check_image, compute_dtype, per_sample
+from .blur import check_image, compute_dtype, per_sample, to_output_dtype
 
 CURVES = ("linear", "reinhard", "reinhard_extended", "aces", "hable")
 
@@ -74,7 +74,7 @@ def tone_curve(x: torch.Tensor, curve: str = "aces", white: float = 4.0) -> torc
         den = s * (a * s + b * t) + d * f * t * t
         white_scale = 1.0 / float(_hable_partial(torch.tensor(HABLE_WHITE, dtype=torch.float64)))
         y = ((num / den - e / f) * white_scale).clamp(0.0, 1.0)
-    return y.to(out_dtype)
+    return to_output_dtype(y, out_dtype)
 
 
 class Exposure(nn.Module):
@@ -93,7 +93,7 @@ class Exposure(nn.Module):
             return x
         x = check_image("x", x)
         ev_t = per_sample("ev", self.ev if ev is None else ev, x.to(compute_dtype(x.dtype)))
-        return (x.to(ev_t.dtype) * torch.exp2(ev_t)).to(x.dtype)
+        return to_output_dtype(x.to(ev_t.dtype) * torch.exp2(ev_t), x.dtype)
 
 
 class ToneMap(nn.Module):
@@ -121,7 +121,7 @@ def encode_srgb(x: torch.Tensor) -> torch.Tensor:
     x = check_image("x", x, 3)
     out_dtype = x.dtype
     y = kornia.color.linear_rgb_to_rgb(x.to(compute_dtype(x.dtype)).clamp(0.0, 1.0))
-    return y.to(out_dtype)
+    return to_output_dtype(y, out_dtype)
 
 
 class EncodeSRGB(nn.Module):

@@ -253,6 +253,10 @@ def _fragments_from_keys(clip_pos, faces, keys, shape, derivatives) -> Fragments
     clip_t = clip_pos.permute(2, 0, 1).reshape(4, -1)
     verts = clip_t.index_select(1, (corners + items * clip_pos.shape[1]).view(-1))
     verts = verts.view(4, 3, -1)
+    # Barycentrics and depth are invariant to scaling a triangle's homogeneous vertices:
+    # normalise each triangle to max |component| = 1 so products neither under- nor overflow.
+    scale = verts.detach().abs().amax(dim=(0, 1)).clamp_(min=torch.finfo(verts.dtype).tiny)
+    verts = verts / scale
     bary, depth, dbdx, dbdy = perspective_barycentrics(verts, x_ndc, y_ndc, derivatives)
     with torch.no_grad():
         x, y, _, wv = verts

@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 from functools import lru_cache
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -86,7 +87,9 @@ MIN_LEVEL_HEIGHT: int = 32
 # Irradiance convolution factors A_l of the clamped cosine (Ramamoorthi & Hanrahan eq. 8).
 _A_L = (math.pi, 2.0 * math.pi / 3.0, math.pi / 4.0)
 # Real SH normalisation constants, bands 0..2.
-_C0, _C1, _C2, _C3, _C4 = 0.282095, 0.488603, 1.092548, 0.315392, 0.546274
+_C0, _C1 = 0.5 / math.sqrt(math.pi), math.sqrt(3.0 / (4.0 * math.pi))  # 0.282095, 0.488603
+_C2, _C3 = 0.5 * math.sqrt(15.0 / math.pi), 0.25 * math.sqrt(5.0 / math.pi)  # 1.092548, 0.315392
+_C4 = 0.25 * math.sqrt(15.0 / math.pi)  # 0.546274
 
 
 def _normalize(x: torch.Tensor) -> torch.Tensor:
@@ -101,14 +104,23 @@ def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return (a * b).sum(1, keepdim=True)
 
 
-def yaw_rotation(angle: float | torch.Tensor) -> torch.Tensor:
-    """Rotation about +y by ``angle`` radians (right-handed): ``(3, 3)`` or ``(B, 3, 3)``."""
-    a = torch.as_tensor(angle, dtype=torch.get_default_dtype())
+def yaw_rotation(angle: float | torch.Tensor, *, dtype: torch.dtype | None = None) -> torch.Tensor:
+    """Rotation about +y by ``angle`` radians (right-handed): ``(3, 3)`` or ``(B, 3, 3)``.
+
+    Evaluated in float64 (so cos(pi/2) is ~1e-17, not ~4e-8) and returned in ``dtype``
+    (default: the angle tensor's floating dtype, else torch's default dtype)."""
+    if dtype is None:
+        is_float = isinstance(angle, torch.Tensor) and angle.is_floating_point()
+        dtype = angle.dtype if is_float else torch.get_default_dtype()
+    a = angle.to(torch.float64) if isinstance(angle, torch.Tensor) else torch.tensor(
+        float(angle), dtype=torch.float64
+    )
     c, s = torch.cos(a), torch.sin(a)
     z, o = torch.zeros_like(a), torch.ones_like(a)
-    return torch.stack(
+    rot = torch.stack(
         (torch.stack((c, z, s), -1), torch.stack((z, o, z), -1), torch.stack((-s, z, c), -1)), -2
     )
+    return rot.to(dtype)
 
 
 # ---------------------------------------------------------------------- spherical harmonics
@@ -138,18 +150,55 @@ def sh_basis(d: torch.Tensor) -> torch.Tensor:
     )
 
 
+@lru_cache(maxsize=8)
+def _texel_sh_integrals(height: int, width: int) -> torch.Tensor:
+    """``(9, H, W)`` float64: the exact integral of each SH basis function over each texel
+    of an ``H x W`` lat-long map (theta from +y, x = s sin(phi), y = cos(theta),
+    z = -s cos(phi), s = sin(theta)).
+
+    Every basis function is a sum of products f(theta) g(phi), so a texel integral is a sum
+    of products of 1-D integrals, each done with 8-point Gauss-Legendre per row / column
+    (exact to rounding for these smooth integrands on small intervals)."""
+    xg, wg = (torch.from_numpy(a) for a in np.polynomial.legendre.leggauss(8))
+
+    def integrate(n: int, span: float, offset: float, f) -> torch.Tensor:  # noqa: ANN001
+        lo = torch.arange(n, dtype=torch.float64) * (span / n) + offset
+        t = lo[:, None] + (xg[None] + 1.0) * (0.5 * span / n)
+        return (f(t) * wg[None]).sum(1) * (0.5 * span / n)
+
+    def th(f) -> torch.Tensor:  # noqa: ANN001  (the sin(theta) Jacobian is included here)
+        return integrate(height, math.pi, 0.0, lambda t: f(t) * torch.sin(t))[:, None]
+
+    def ph(g) -> torch.Tensor:  # noqa: ANN001
+        return integrate(width, 2.0 * math.pi, -math.pi, g)[None, :]
+
+    sn, cs = torch.sin, torch.cos
+    one = torch.ones_like
+    s2 = lambda t: sn(t) ** 2  # noqa: E731
+    terms = [
+        _C0 * th(one) * ph(one),
+        _C1 * th(cs) * ph(one),  # y
+        _C1 * th(sn) * ph(lambda p: -cs(p)),  # z
+        _C1 * th(sn) * ph(sn),  # x
+        _C2 * th(lambda t: sn(t) * cs(t)) * ph(sn),  # xy
+        _C2 * th(lambda t: cs(t) * sn(t)) * ph(lambda p: -cs(p)),  # yz
+        _C3 * (3.0 * th(s2) * ph(lambda p: cs(p) ** 2) - th(one) * ph(one)),  # 3z^2 - 1
+        _C2 * th(s2) * ph(lambda p: -sn(p) * cs(p)),  # xz
+        _C4 * (th(s2) * ph(lambda p: sn(p) ** 2) - th(lambda t: cs(t) ** 2) * ph(one)),
+    ]
+    return torch.stack(terms, 0)
+
+
 def sh_project(env: torch.Tensor) -> torch.Tensor:
     """Project a lat-long radiance map ``(B, 3, He, We)`` onto 9 SH coefficients ``(B, 9, 3)``.
 
-    ``L_lm = sum_texels L(w) Y_lm(w) dw`` with the exact solid angle of each texel
-    (:func:`torchraster.texture.latlong_solid_angles`), i.e. exact for the piecewise
-    constant map.
+    ``L_lm = sum_texels L_texel * integral_texel Y_lm dw``: exact for the piecewise-constant
+    map (the per-texel basis integrals are computed once per size and cached), so e.g. a
+    uniform map has exactly zero bands 1 and 2.
     """
     check_tensor("env", env, ("B", 3, "He", "We"), floating=True)
     he, we = env.shape[-2:]
-    dirs = latlong_directions(he, we, device=env.device, dtype=env.dtype)
-    w = latlong_solid_angles(he, we, device=env.device, dtype=env.dtype)  # (He, 1)
-    basis = sh_basis(dirs)[0] * w  # (9, He, We)
+    basis = _texel_sh_integrals(he, we).to(device=env.device, dtype=env.dtype)
     return torch.einsum("khw,bchw->bkc", basis, env)
 
 
@@ -313,10 +362,10 @@ def prefilter_specular(
     Two ways to compute a level, chosen per level:
 
     * quadrature (exact for the source): the source is box-downsampled so that the lobe
-      width spans ``texels_per_lobe`` texels, and every output texel sums over every source
-      texel (two matrix products). Used when the source is that fine and
-      ``out_texels * src_texels <= quadrature_budget`` -- the rough levels, where the lobe
-      is wide and the sums are small.
+      width spans ``texels_per_lobe`` texels (box-downsampled, or bilinearly upsampled when
+      the source is coarser), and every output texel sums over every source texel (two
+      matrix products). Used when ``out_texels * src_texels <= quadrature_budget`` -- the
+      rough levels, where the lobe is wide and the sums are small.
     * GGX importance sampling with ``samples`` Hammersley samples, each read from the
       source's box mip pyramid at lod ``0.5 log2(Omega_s / Omega_p) + FIS_LOD_BIAS``
       (filtered importance sampling) -- the sharp levels, where few texels matter.
@@ -345,12 +394,19 @@ def prefilter_specular(
     out = [env]
     for k in range(1, levels):
         rough = lod_to_roughness(k, levels)
-        per_lobe = math.pi / _lobe_width(rough)  # lat-long rows per lobe half-width
-        h = int(min(size, max(MIN_LEVEL_HEIGHT, math.ceil(texels_per_lobe * per_lobe))))
-        hs = int(max(MIN_LEVEL_HEIGHT, math.ceil(texels_per_lobe * per_lobe)))
-        # quadrature needs source texels finer than the lobe; else sample the (bilinear) source
-        if hs <= he and 2 * h * h * 2 * hs * hs <= quadrature_budget:
-            src = env if hs == he else F.adaptive_avg_pool2d(env, (hs, 2 * hs))
+        need = max(MIN_LEVEL_HEIGHT, math.ceil(texels_per_lobe * math.pi / _lobe_width(rough)))
+        h = int(min(size, he, need))  # never finer than the source
+        hs = int(need)
+        if 2 * h * h * 2 * hs * hs <= quadrature_budget:
+            # quadrature on the source resampled to `need` rows: box-downsampled, or
+            # bilinearly upsampled (the same reconstruction the lookups use)
+            if hs < he:
+                src = F.adaptive_avg_pool2d(env, (hs, 2 * hs))
+            elif hs > he:
+                d = latlong_directions(hs, 2 * hs, device=env.device, dtype=env.dtype)
+                src = sample_latlong(env, d.expand(env.shape[0], -1, -1, -1))
+            else:
+                src = env
             out.append(_prefilter_quadrature(src, rough, h))
         else:
             if src_levels is None:
@@ -461,7 +517,7 @@ class Environment:
             radiance = radiance[None]
         check_tensor("radiance", radiance, ("B", 3, "He", "We"), floating=True)
         self.radiance = radiance
-        rot = yaw_rotation(yaw).to(device=radiance.device, dtype=radiance.dtype)
+        rot = yaw_rotation(yaw, dtype=radiance.dtype).to(radiance.device)
         if rotation is not None:
             if isinstance(rotation, torch.Tensor) and rotation.dim() == 2:
                 rotation = rotation[None]
