@@ -301,7 +301,8 @@ def picture(path: Path) -> None:
               fill=(255, 255, 255))
     img.save(path, optimize=True)
     print(f"{path}: {stats['disagree']} of {stats['pixels']} pixels differ "
-          f"({stats['near_edge']} within {1e-4} px of an edge, {stats['unexplained']} unexplained)")
+          f"({stats['near_edge']} within 1e-4 px of an edge, {stats['depth_tie']} on a depth tie "
+          f"(shared edge), {stats['unexplained']} unexplained)")
 
 
 def main() -> int:

@@ -281,6 +281,31 @@ def reference_rasterize(
     )
 
 
+def reference_pixels(
+    clip_pos: torch.Tensor,
+    faces: torch.Tensor,
+    pixels: torch.Tensor,
+    resolution: tuple[int, int],
+    cull_backfaces: bool = False,
+) -> torch.Tensor:
+    """Reference face ids (N,) at selected pixels ``pixels`` (N,2) (row, col) of one batch
+    item (``clip_pos`` (V,4)); -1 where empty. Cheap for a few pixels of a big mesh."""
+    h, w = resolution
+    clip_pos = clip_pos.detach().to(torch.float64).cpu()
+    faces = faces.detach().cpu()
+    pix = pixel_centres(h, w)[pixels[:, 0] * w + pixels[:, 1]]
+    best_z = torch.full((pix.shape[0],), float("inf"), dtype=torch.float64)
+    best_f = torch.full((pix.shape[0],), -1, dtype=torch.int64)
+    chunk = max(1, MAX_PAIRS // max(pix.shape[0], 1))
+    for s in range(0, faces.shape[0], chunk):
+        _, z, _ = _eval(clip_pos[faces[s : s + chunk]], pix, cull_backfaces)
+        zmin, arg = z.min(0)
+        better = zmin < best_z
+        best_z = torch.where(better, zmin, best_z)
+        best_f = torch.where(better, arg + s, best_f)
+    return best_f
+
+
 def reference_coverage_count(
     clip_pos: torch.Tensor,
     faces: torch.Tensor,

@@ -209,14 +209,16 @@ def test_low_precision(dtype: torch.dtype) -> None:
     v[0] = l[0] = n[0]  # exact mirror direction: the GGX peak
     rough = torch.rand(64, 1, 1, 1, generator=g)
     rough[0] = 0.0
-    ref = cook_torrance(n, v, l, 1.0, 1.0, rough)
-    low = cook_torrance(n.to(dtype), v.to(dtype), l.to(dtype), 1.0, 1.0, rough.to(dtype))
+    n, v, l, rough = (t.to(dtype) for t in (n, v, l, rough))
+    # reference: the same (rounded) inputs evaluated in float32
+    ref = cook_torrance(n.float(), v.float(), l.float(), 1.0, 1.0, rough.float())
+    low = cook_torrance(n, v, l, 1.0, 1.0, rough)
     assert low.dtype == dtype and torch.isfinite(low).all()
     # peak D alone overflows float16 (7.8e4 > 65504): saturated, not Inf
     d = d_ggx(torch.ones(1, dtype=dtype), 0.0)
     assert torch.isfinite(d).all() and d.item() >= 6e4
     rel = ((low.float() - ref).abs() / ref.abs().clamp_min(1e-2)).max().item()
-    assert rel < 0.05  # input rounding to 8-11 bits moves sharp highlights a little
+    assert rel < 0.01  # only the output is rounded to 8 (bf16) / 11 (fp16) bits
 
 
 def test_bad_inputs() -> None:

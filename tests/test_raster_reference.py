@@ -186,7 +186,12 @@ def _assert_agrees(stats: dict, dtype: torch.dtype, strict: bool = False) -> dic
     BARY_TOL, or, on ill-conditioned pixels (slivers, huge near-plane crossers), within the
     float rounding bound ROUNDOFF_FACTOR * u * cond; ``strict``: the fixed tolerances only."""
     assert stats["unexplained"] == 0, _summary(stats)
-    assert stats["agree_frac"] >= MIN_AGREE, _summary(stats)
+    # Depth ties are left out of the agreement fraction: they are pixels where two faces are
+    # at the same depth up to rounding, e.g. the duplicate faces with reversed winding in
+    # bunny-res2, whose float depths differ by 1e-14 in float64 (the reference) but the other
+    # way round in float32, so "lower index wins" legitimately picks either.
+    assert 1 - (stats["disagree"] - stats["depth_tie"]) / stats["pixels"] >= MIN_AGREE, (
+        _summary(stats))
     ratios = error_ratios(stats, dtype, DEPTH_TOL[dtype], BARY_TOL[dtype])
     info = {**_summary(stats), **ratios}
     if strict:

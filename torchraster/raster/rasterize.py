@@ -22,8 +22,8 @@ from .binning import Records, TriangleSetup, bin_triangles, setup_triangles
 from .clip import clip_and_project, outcodes, project
 
 DEFAULT_TILE = 16
-DEFAULT_MEMORY_BUDGET = 64 * 2**20  # bytes of temporaries per chunk of pixel candidates
-_BYTES_PER_CANDIDATE = 24  # float E + bool masks + depth + int64 flat index, roughly
+DEFAULT_MEMORY_BUDGET = 96 * 2**20  # bytes of temporaries per chunk of pixel candidates
+_BYTES_PER_CANDIDATE = 64  # E, masks and depth (10 B) + ~7 int64 temporaries if covered
 _EMPTY_KEY = torch.iinfo(torch.int64).max
 
 
@@ -255,8 +255,9 @@ def _fragments_from_keys(clip_pos, faces, keys, shape, derivatives) -> Fragments
     verts = verts.view(4, 3, -1)
     # Barycentrics and depth are invariant to scaling a triangle's homogeneous vertices:
     # normalise each triangle to max |component| = 1 so products neither under- nor overflow.
-    scale = verts.detach().abs().amax(dim=(0, 1)).clamp_(min=torch.finfo(verts.dtype).tiny)
-    verts = verts / scale
+    flat_verts = verts.detach().view(12, -1)
+    scale = torch.maximum(flat_verts.amax(0), flat_verts.amin(0).neg_())
+    verts = verts / scale.clamp_(min=torch.finfo(verts.dtype).tiny)
     bary, depth, dbdx, dbdy = perspective_barycentrics(verts, x_ndc, y_ndc, derivatives)
     with torch.no_grad():
         x, y, _, wv = verts

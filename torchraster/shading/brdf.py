@@ -238,8 +238,8 @@ def cook_torrance(
 
     Args:
         n, v, l: unit normal, direction to the viewer and direction to the light, xyz on
-            dim -3: ``(B, 3, H, W)`` or ``(B, L, 3, H, W)`` (broadcastable). Not
-            re-normalised (use :func:`safe_normalize`); the half vector is.
+            dim -3: ``(B, 3, H, W)`` or ``(B, L, 3, H, W)`` (broadcastable). Must be unit
+            length (or zero); not re-normalised (use :func:`safe_normalize`).
         albedo: base colour (linear RGB), ``(B, 3, H, W)``-broadcastable or float.
         metallic: in [0, 1], ``(B, 1, H, W)``-broadcastable or float.
         roughness: perceptual roughness in [0, 1], ``(B, 1, H, W)``-broadcastable or float.
@@ -257,11 +257,15 @@ def cook_torrance(
     metal = _as_tensor("metallic", metallic, n, dt)
     rough = _as_tensor("roughness", roughness, n, dt)
 
-    h = safe_normalize(v + l)
+    # Half-vector cosines without forming h (unit v, l): |v + l|^2 = 2 + 2 v.l,
+    # n.h = (n.l + n.v) / |v + l|, v.h = (1 + v.l) / |v + l|; v = -l gives 0 ("double where").
     n_dot_v = dot(n, v)
     n_dot_l = dot(n, l)
-    n_dot_h = dot(n, h)
-    v_dot_h = dot(v, h)
+    len2 = 2.0 + 2.0 * dot(v, l)
+    ok = len2 > NORMALIZE_EPS
+    inv_len = torch.where(ok, torch.rsqrt(torch.where(ok, len2, 1.0)), 0.0)
+    n_dot_h = (n_dot_l + n_dot_v) * inv_len
+    v_dot_h = 0.5 * len2 * inv_len
 
     f0 = DIELECTRIC_F0 * (1.0 - metal) + base * metal
     spec = (
