@@ -213,7 +213,7 @@ def test_icosphere_has_no_cracks(subdiv: int) -> None:
     ico = trimesh.creation.icosphere(subdivisions=subdiv)
     verts = torch.as_tensor(ico.vertices, dtype=torch.float64)
     faces = torch.as_tensor(ico.faces, dtype=torch.int64)
-    _assert_no_holes(verts, faces, 96, 6, seed=subdiv)
+    _assert_no_holes(verts, faces, 64, 4, seed=subdiv)
     # convex: its silhouette is convex, so every candidate would be a crack; none may exist
     clip = _views(verts, 6, subdiv + 100, (1.6, 4.0))
     assert (_holes(tr.rasterize(clip, faces, resolution=(96, 96)).face_id) == 0).all()
@@ -221,7 +221,7 @@ def test_icosphere_has_no_cracks(subdiv: int) -> None:
 
 def test_fandisk_has_no_cracks(shared_data) -> None:
     verts, faces = load_mesh(str(shared_data / "meshes/fandisk.obj"))
-    _assert_no_holes(verts, faces, 128, 4, seed=7)
+    _assert_no_holes(verts, faces, 96, 3, seed=7)
 
 
 @pytest.mark.slow
