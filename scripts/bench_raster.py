@@ -116,7 +116,8 @@ def main() -> None:
     for name in meshes:
         for res in sizes:
             for batch in (1, 8):
-                reps = args.repeats if (name != "1.3M" and res < 1024) else max(3, args.repeats // 2)
+                heavy = name == "1.3M" or res == 1024
+                reps = max(3, args.repeats // 2) if heavy else args.repeats
                 r = run({"kind": "sphere", "subdiv": SUBDIV[name], "res": res, "batch": batch,
                          "repeats": reps, "gl": True})
                 by_key[(name, res, batch)] = r

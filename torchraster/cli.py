@@ -11,7 +11,7 @@ from tqdm import tqdm
 
 from .config import ConfigError, load_config
 from .io import MeshFileError
-from .pipeline import check_formats, render_config, write_outputs
+from .pipeline import check_formats, iter_render, write_outputs
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -43,22 +43,22 @@ def main(argv: list[str] | None = None) -> int:
     status = 0
     with tqdm(total=total, unit="view", disable=total < 2, file=sys.stderr) as bar:
         for path, cfg in configs:
+            done = 0
             try:
-                results = render_config(cfg, args.device)
+                for result in iter_render(cfg, args.device):
+                    folder = args.out / path.stem
+                    if len(cfg.cameras) > 1:
+                        folder = folder / result.name
+                    for written in write_outputs(result, folder, cfg.outputs.formats):
+                        tqdm.write(str(written), file=sys.stdout)
+                    if args.verbose:
+                        tqdm.write(f"plan: {'; '.join(result.plan)}", file=sys.stderr)
+                    bar.update(1)
+                    done += 1
             except (ConfigError, MeshFileError, FileNotFoundError, ValueError) as e:
                 print(f"torchraster: error: {path}: {e}", file=sys.stderr)
                 status = 1
-                bar.update(len(cfg.cameras))
-                continue
-            for result in results:
-                folder = args.out / path.stem
-                if len(results) > 1:
-                    folder = folder / result.name
-                for written in write_outputs(result, folder, cfg.outputs.formats):
-                    tqdm.write(str(written), file=sys.stdout)
-                if args.verbose:
-                    tqdm.write(f"plan: {'; '.join(result.plan)}", file=sys.stderr)
-                bar.update(1)
+                bar.update(len(cfg.cameras) - done)
     return status
 
 

@@ -14,6 +14,7 @@ import importlib.util
 import math
 import os
 import tempfile
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -153,6 +154,12 @@ def _encode(name: str, img: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 
 def render_config(cfg: RenderFile, device: str | torch.device = "cpu") -> list[ViewResult]:
     """Render every camera of a config. Returns one :class:`ViewResult` per camera."""
+    return list(iter_render(cfg, device))
+
+
+def iter_render(cfg: RenderFile, device: str | torch.device = "cpu") -> Iterator[ViewResult]:
+    """Render the cameras of a config one by one (scene, lights and environment are loaded
+    and precomputed once), yielding a :class:`ViewResult` per camera."""
     scene = build_scene(cfg)
     scene = RenderScene(*(t.to(device) if isinstance(t, torch.Tensor) else t for t in (
         scene.positions, scene.faces, scene.normals, scene.uvs, scene.tangents,
@@ -172,7 +179,6 @@ def render_config(cfg: RenderFile, device: str | torch.device = "cpu") -> list[V
     channels = set(cfg.outputs.channels) - {"color", "alpha"}
     if post is not None and post.dof.enabled:
         channels.add("depth")
-    results = []
     for i, cam in enumerate(cfg.cameras):
         view, proj = build_camera(cam, scene.positions.cpu(), res)
         with torch.no_grad():
@@ -189,9 +195,9 @@ def render_config(cfg: RenderFile, device: str | torch.device = "cpu") -> list[V
         images.update({k: v[0] for k, v in out.gbuffer.items()})
         mask = (out.alpha[0] > 0).to(color.dtype)
         images = {k: v for k, v in images.items() if k in cfg.outputs.channels}
-        results.append(ViewResult(cam.name or f"view{i}", images, out.plan))
-        results[-1].mask = mask  # used by write_outputs for display encodings
-    return results
+        result = ViewResult(cam.name or f"view{i}", images, out.plan)
+        result.mask = mask  # used by write_outputs for display encodings
+        yield result
 
 
 def _atomic_write(path: Path, write) -> None:
@@ -259,9 +265,8 @@ def render_to_files(cfg: RenderFile, out_dir: str | Path, device: str = "cpu") -
     """Render every camera of ``cfg`` into ``out_dir`` (one sub-folder per camera when there
     are several). Returns the written paths."""
     check_formats(cfg, "config")
-    results = render_config(cfg, device)
     written = []
-    for r in results:
-        folder = Path(out_dir) / r.name if len(results) > 1 else Path(out_dir)
+    for r in iter_render(cfg, device):
+        folder = Path(out_dir) / r.name if len(cfg.cameras) > 1 else Path(out_dir)
         written += write_outputs(r, folder, cfg.outputs.formats)
     return written

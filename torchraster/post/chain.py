@@ -34,7 +34,7 @@ class DOFConfig(_Section):
     f_number: float = Field(2.8, gt=0)
     sensor_width_mm: float = Field(36.0, gt=0)
     max_coc: float = Field(16.0, gt=0, description="largest CoC diameter, pixels")
-    levels: int = Field(6, ge=2, description="blur levels blended per pixel")
+    levels: int = Field(12, ge=2, description="blur levels blended per pixel")
 
 
 class BloomConfig(_Section):
@@ -44,7 +44,7 @@ class BloomConfig(_Section):
     threshold: float = Field(1.0, ge=0)
     knee: float = Field(0.5, ge=0)
     intensity: float = Field(0.05, ge=0)
-    radius: float = Field(1.0, ge=0, description="Gaussian sigma per level, level pixels")
+    radius: float = Field(1.5, ge=0, description="Gaussian sigma per level, level pixels")
     levels: int = Field(5, ge=1)
     karis: bool = True
 
