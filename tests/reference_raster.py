@@ -122,42 +122,24 @@ def face_bary_depth(
 def rounding_condition(
     clip_pos: torch.Tensor, faces: torch.Tensor, face_idx: torch.Tensor, pix: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Running-error condition numbers (Higham, "Accuracy and Stability of Numerical
-    Algorithms", 2nd ed., sec. 3.1) of the barycentrics (N,) and NDC depth (N,) of face
-    ``face_idx`` (N,) at ``pix`` (N,2): the same formulas evaluated on absolute values,
-    divided by the result's denominator. Evaluating them with unit roundoff u perturbs the
-    result by about ``u * cond``; well-shaped faces have cond ~ 1..10, slivers far more."""
-    tri = clip_pos[faces[face_idx]].to(torch.float64)
-    coef, det = edge_coefficients(tri)
-    e = coef[..., 0] * pix[:, None, 0] + coef[..., 1] * pix[:, None, 1] + coef[..., 2]
-    coef_abs = _abs_cross(tri.abs())  # sums of |terms| of the cross products
-    det_abs = (tri.abs()[:, 0][:, [0, 1, 3]] * coef_abs[:, 0]).sum(-1)
-    e_abs = coef_abs[..., 0] * pix[:, None, 0].abs() + coef_abs[..., 1] * pix[:, None, 1].abs()
-    e_abs = e_abs + coef_abs[..., 2]
-    s = e.sum(-1).abs()
-    bary = e / e.sum(-1, keepdim=True)
-    cond_b = (e_abs + bary.abs() * e_abs.sum(-1, keepdim=True)).amax(-1) / s
-    z = (e * tri[..., 2]).sum(-1) / det
-    cond_z = ((e_abs * tri[..., 2].abs()).sum(-1) + z.abs() * det_abs) / det.abs()
-    return cond_b, cond_z
-
-
-def _abs_cross(tri_abs: torch.Tensor) -> torch.Tensor:
-    """(..., 3, 3) per edge k: |y_i||w_j| + |w_i||y_j|, ... (the sums of absolute terms of the
-    cross products V_i x V_j over (x, y, w)) for absolute vertex values (..., 3, 4)."""
-    v = tri_abs[..., [0, 1, 3]]
-    out = []
-    for i, j in ((1, 2), (2, 0), (0, 1)):
-        a, b = v[..., i, :], v[..., j, :]
-        out.append(
-            torch.stack(
-                [a[..., 1] * b[..., 2] + a[..., 2] * b[..., 1],
-                 a[..., 2] * b[..., 0] + a[..., 0] * b[..., 2],
-                 a[..., 0] * b[..., 1] + a[..., 1] * b[..., 0]],
-                dim=-1,
-            )
-        )
-    return torch.stack(out, dim=-2)
+    """Componentwise condition numbers of the barycentrics (N,) and NDC depth (N,) of face
+    ``face_idx`` (N,) at ``pix`` (N,2) with respect to the face's clip coordinates:
+    ``cond = sum_j |d out / d x_j| |x_j|`` (max over the three barycentrics), from float64
+    autograd. Perturbing every input by a relative u (float rounding of the inputs, or of an
+    algorithm that is backward stable in them) changes the output by at most ~u * cond to
+    first order (Higham, "Accuracy and Stability of Numerical Algorithms", 2nd ed., sec. 7.2).
+    Well-shaped faces have cond ~ 1..10; slivers and huge near-plane crossers far more."""
+    with torch.enable_grad():
+        tri = clip_pos[faces[face_idx]].detach().to(torch.float64).requires_grad_(True)
+        coef, det = edge_coefficients(tri)
+        e = coef[..., 0] * pix[:, None, 0] + coef[..., 1] * pix[:, None, 1] + coef[..., 2]
+        bary = e / e.sum(-1, keepdim=True)
+        z = (e * tri[..., 2]).sum(-1) / det
+        conds = []
+        for out in (bary[:, 0], bary[:, 1], bary[:, 2], z):
+            (g,) = torch.autograd.grad(out.sum(), tri, retain_graph=True)
+            conds.append((g.abs() * tri.detach().abs()).sum((-1, -2)))
+    return torch.stack(conds[:3], -1).amax(-1), conds[3]
 
 
 def boundary_distance_px(

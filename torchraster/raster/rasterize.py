@@ -236,8 +236,15 @@ def _cover_records(setup: TriangleSetup, rec: Records, resolution: tuple[int, in
 
 
 def _fragments_from_keys(clip_pos, faces, keys, shape, derivatives) -> Fragments:
-    """Decode face ids and recompute differentiable barycentrics and depth."""
+    """Decode face ids and recompute differentiable barycentrics and depth.
+
+    The per-pixel work is an affine evaluation: every visible (item, face) gets a small
+    table (barycentric numerators at one of its pixels, their screen gradients, the depth
+    numerator and denominator) from :func:`face_tables`, and each pixel evaluates it at its
+    offset from that reference pixel.
+    """
     b, h, w = shape
+    n_faces = faces.shape[0]
     pixels = (keys != _EMPTY_KEY).nonzero().squeeze(1)
     face = keys.index_select(0, pixels) & 0xFFFFFFFF
     face_id = torch.full((b * h * w,), -1, dtype=torch.int64, device=keys.device)
@@ -249,55 +256,66 @@ def _fragments_from_keys(clip_pos, faces, keys, shape, derivatives) -> Fragments
     row = (pixels // w) - items * h
     x_ndc = (2 * col + 1).to(dtype).mul_(1.0 / w).sub_(1.0)
     y_ndc = (2 * row + 1).to(dtype).mul_(-1.0 / h).add_(1.0)
-    # Component-major gather: (4, B*V) -> (4, 3, N), every row a contiguous vector.
+
+    # Visible (item, face) pairs, a table row each, and one reference pixel per row.
+    slot = items * n_faces + face
+    visible = torch.zeros(b * n_faces, dtype=torch.bool, device=keys.device)
+    visible[slot] = True
+    vis = visible.nonzero().squeeze(1)
+    row_of = (torch.cumsum(visible, 0) - 1).index_select(0, slot)  # (N,) table row per pixel
+    ref = torch.full((vis.numel(),), pixels.numel(), dtype=torch.int64, device=keys.device)
+    ref.scatter_reduce_(0, row_of, torch.arange(pixels.numel(), device=keys.device), "amin")
+    vis_item, vis_face = vis // n_faces, vis % n_faces
     clip_t = clip_pos.permute(2, 0, 1).reshape(4, -1)
-    verts = clip_t.index_select(1, (corners + items * clip_pos.shape[1]).view(-1))
-    verts = verts.view(4, 3, -1)
-    # Barycentrics and depth are invariant to scaling a triangle's homogeneous vertices:
-    # normalise each triangle to max |component| = 1 so products neither under- nor overflow.
-    flat_verts = verts.detach().view(12, -1)
-    scale = torch.maximum(flat_verts.amax(0), flat_verts.amin(0).neg_())
-    verts = verts / scale.clamp_(min=torch.finfo(verts.dtype).tiny)
-    bary, depth, dbdx, dbdy = perspective_barycentrics(verts, x_ndc, y_ndc, derivatives)
-    with torch.no_grad():
-        x, y, _, wv = verts
-        front = (x[0] * (y[1] * wv[2] - wv[1] * y[2]) - y[0] * (x[1] * wv[2] - wv[1] * x[2])
-                 + wv[0] * (x[1] * y[2] - y[1] * x[2])) > 0
+    vert_ids = faces.T.index_select(1, vis_face) + vis_item * clip_pos.shape[1]
+    verts = clip_t.index_select(1, vert_ids.view(-1)).view(4, 3, -1)  # (4, 3, n_vis)
+    x0, y0 = x_ndc.index_select(0, ref), y_ndc.index_select(0, ref)
+    table, front = face_tables(verts, x0, y0)  # (13, n_vis)
+
+    t = table.index_select(1, row_of)  # (13, N)
+    dx = (x_ndc - x0.index_select(0, row_of))
+    dy = (y_ndc - y0.index_select(0, row_of))
+    lam = t[0:3] + t[3:6] * dx + t[6:9] * dy  # (3, N) barycentric numerators
+    total = _nonzero_or_one(lam.sum(0))
+    bary = lam / total
+    depth = (t[9] + t[10] * dx + t[11] * dy) / _nonzero_or_one(t[12])
     frags = Fragments(face_id.view(b, h, w), pixels, items, corners, bary.T, depth)
-    # det[v0 v1 v2] (rows x, y, w) = w0 w1 w2 * twice the NDC area: > 0 = counter-clockwise
-    frags.front_facing = front
-    if derivatives:  # per pixel step: d/d(col) = (2 / W) d/dx_ndc, d/d(row) = -(2 / H) d/dy_ndc
-        frags.bary_dx_packed = (dbdx * (2.0 / w)).T
-        frags.bary_dy_packed = (dbdy * (-2.0 / h)).T
+    frags.front_facing = front.index_select(0, row_of)
+    if derivatives:
+        # d b_i = (d l_i - b_i d sum(l)) / sum(l); per pixel step: d/d(col) = (2 / W) d/dx_ndc,
+        # d/d(row) = -(2 / H) d/dy_ndc
+        gx, gy = t[3:6], t[6:9]
+        frags.bary_dx_packed = ((gx - bary * gx.sum(0)) / total * (2.0 / w)).T
+        frags.bary_dy_packed = ((gy - bary * gy.sum(0)) / total * (-2.0 / h)).T
     return frags
 
 
-def _nonzero_or_one(t: torch.Tensor) -> torch.Tensor:
-    """``t`` with exact zeros replaced by 1: a safe denominator with finite gradients."""
-    return torch.where(t == 0, torch.ones_like(t), t)
+def face_tables(verts: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor):
+    """Affine screen-space tables for perspective-correct barycentrics and depth.
 
+    verts: (4, 3, n) clip-space triangles, component-major ([x|y|z|w][vertex][triangle]);
+    x0, y0: (n,) an NDC reference point per triangle (one of its covered pixel centres).
 
-def perspective_barycentrics(
-    verts: torch.Tensor, x_ndc: torch.Tensor, y_ndc: torch.Tensor, derivatives: bool = False
-):
-    """Perspective-correct barycentrics and NDC depth of points in clip-space triangles.
+    With homogeneous 2-D vertices v_i = (x_i, y_i, w_i) and a pixel ray p = (x, y, 1), the
+    unnormalised perspective-correct barycentrics are l_i = p . (v_j x v_k) (Olano & Greer
+    1997, "Triangle scan conversion using 2D homogeneous coordinates"); b = l / sum(l). No
+    divide by w, so this holds for triangles crossing the near plane too. For float accuracy
+    the frame is sheared so that the reference point is the origin (x'_i = x_i - x0 w_i,
+    y'_i = y_i - y0 w_i; determinant 1, l unchanged): then l_i(x0 + dx, y0 + dy) =
+    l0_i + gx_i dx + gy_i dy with l0_i = x'_j y'_k - y'_j x'_k, gx_i = y'_j w_k - w_j y'_k
+    and gy_i = w_j x'_k - x'_j w_k, all products of small, local numbers. NDC depth is
+    sum(l z) / sum(l w), where sum(l w) = det[v_0 v_1 v_2] is constant over the triangle.
+    Each triangle is first scaled to max |component| = 1 (b and z are invariant), so
+    products neither under- nor overflow.
 
-    verts: (4, 3, N) clip-space triangles, component-major ([x|y|z|w][vertex][triangle]);
-    x_ndc, y_ndc: (N,) NDC points. With homogeneous 2-D vertices v_i = (x_i, y_i, w_i) and
-    the pixel ray p = (x, y, 1), the unnormalised barycentrics are l_i = p . (v_j x v_k)
-    (Olano & Greer 1997, "Triangle scan conversion using 2D homogeneous coordinates");
-    b = l / sum(l). No divide by w, so it also holds for triangles crossing the near plane.
-    For float accuracy the frame is first sheared so that p = (0, 0, 1) (v_i -> (x_i - x w_i,
-    y_i - y w_i, w_i), determinant 1): then l_i = x'_j y'_k - y'_j x'_k from small, local
-    numbers.
-
-    Returns bary (3, N), depth (N,) = sum l z / sum l w, and with ``derivatives`` d bary /
-    d x_ndc and d bary / d y_ndc (each (3, N); else None). Degenerate triangles give finite
-    values (and gradients).
+    Returns table (13, n): rows l0 (3), gx (3), gy (3), depth numerator at the reference
+    and its x, y gradients (3), det (1); and front (n,) bool: counter-clockwise in NDC.
     """
-    x, y, z, w = verts  # each (3, N)
-    xs = x - x_ndc * w
-    ys = y - y_ndc * w
+    flat = verts.detach().reshape(12, -1)
+    scale = torch.maximum(flat.amax(0), flat.amin(0).neg_()).clamp_(
+        min=torch.finfo(verts.dtype).tiny)
+    x, y, z, w = verts / scale  # each (3, n)
+    xs, ys = x - x0 * w, y - y0 * w
 
     def nxt(t):  # vertex rows (1, 2, 0)
         return torch.cat([t[1:], t[:1]])
@@ -305,16 +323,16 @@ def perspective_barycentrics(
     def prv(t):  # vertex rows (2, 0, 1)
         return torch.cat([t[2:], t[:2]])
 
-    lam = nxt(xs) * prv(ys) - nxt(ys) * prv(xs)
-    total = _nonzero_or_one(lam.sum(0))
-    bary = lam / total
-    depth = (lam * z).sum(0) / _nonzero_or_one((lam * w).sum(0))
-    if not derivatives:
-        return bary, depth, None, None
-    # d l_i / d x_ndc = (v_j x v_k)_x = y_j w_k - w_j y_k (same for y); then
-    # d b_i = (d l_i - b_i d sum(l)) / sum(l).
-    dldx = nxt(y) * prv(w) - nxt(w) * prv(y)
-    dldy = nxt(w) * prv(x) - nxt(x) * prv(w)
-    dbdx = (dldx - bary * dldx.sum(0)) / total
-    dbdy = (dldy - bary * dldy.sum(0)) / total
-    return bary, depth, dbdx, dbdy
+    lam0 = nxt(xs) * prv(ys) - nxt(ys) * prv(xs)
+    gx = nxt(ys) * prv(w) - nxt(w) * prv(ys)
+    gy = nxt(w) * prv(xs) - nxt(xs) * prv(w)
+    det = (lam0 * w).sum(0, keepdim=True)
+    depth_rows = torch.stack([(lam0 * z).sum(0), (gx * z).sum(0), (gy * z).sum(0)])
+    table = torch.cat([lam0, gx, gy, depth_rows, det])
+    front = det.detach()[0] * torch.sign(scale) > 0  # det > 0: counter-clockwise in NDC
+    return table, front
+
+
+def _nonzero_or_one(t: torch.Tensor) -> torch.Tensor:
+    """``t`` with exact zeros replaced by 1: a safe denominator with finite gradients."""
+    return torch.where(t == 0, torch.ones_like(t), t)
