@@ -83,14 +83,21 @@ def setup_triangles(tris: ScreenTriangles) -> TriangleSetup:
 class Records:
     """Blocks of kh x kw pixel centres to test, R records of one block shape.
 
-    tri: (R,) int64 index into the TriangleSetup; x0, y0: (R,) int64 block origin.
+    tri: the records' triangles in the TriangleSetup: a slice (a run of consecutive
+    triangles, no gather needed) or an (R,) int64 index; x0, y0: (R,) int64 block origin.
     """
 
     kh: int
     kw: int
-    tri: torch.Tensor
+    tri: slice | torch.Tensor
     x0: torch.Tensor
     y0: torch.Tensor
+
+    def take(self, values: torch.Tensor) -> torch.Tensor:
+        """The records' entries of a per-triangle tensor (last dimension = triangles)."""
+        if isinstance(self.tri, slice):
+            return values[..., self.tri]
+        return values.index_select(values.dim() - 1, self.tri)
 
 
 def block_sizes(tile: int) -> list[int]:
@@ -106,38 +113,57 @@ def block_sizes(tile: int) -> list[int]:
     return sorted(v for v in sizes if v <= tile)
 
 
-def bin_triangles(
-    setup: TriangleSetup, resolution: tuple[int, int], tile: int, max_candidates: int
-) -> Iterator[Records]:
-    """Yield records covering every triangle's pixel box, in bounded-size chunks."""
+def sort_by_block(tris: ScreenTriangles, resolution: tuple[int, int], tile: int
+                  ) -> tuple[ScreenTriangles, list[tuple[int, int, int, int]], int]:
+    """Order triangles by the block shape they need, so each shape is one contiguous run.
+
+    Returns the reordered triangles, the runs (kh, kw, start, count) of small triangles, and
+    the index where the large triangles (boxes over ``tile`` pixels) begin.
+    """
     h, w = resolution
-    box = setup.box
+    box = tris.box
     bw = box[1] - box[0] + 1
     bh = box[3] - box[2] + 1
     small = (bw <= tile) & (bh <= tile)
+    sizes = torch.tensor(block_sizes(tile), device=box.device)
+    kw = sizes[torch.searchsorted(sizes, bw.clamp(max=tile))].clamp(max=w)
+    kh = sizes[torch.searchsorted(sizes, bh.clamp(max=tile))].clamp(max=h)
+    big_key = (h + 1) * (w + 1)
+    shape_key = torch.where(small, kh * (w + 1) + kw, big_key)
+    shape_key, order = torch.sort(shape_key)
+    keys, counts = torch.unique_consecutive(shape_key, return_counts=True)
+    tris = ScreenTriangles(
+        pos=tris.pos.index_select(2, order), area=tris.area.index_select(0, order),
+        box=box.index_select(1, order), face=tris.face.index_select(0, order),
+        batch=tris.batch.index_select(0, order))
+    runs, start = [], 0
+    for key, count in zip(keys.tolist(), counts.tolist(), strict=True):
+        if key != big_key:
+            runs.append((key // (w + 1), key % (w + 1), start, count))
+        start += count
+    n_small = start - (counts[-1].item() if keys[-1].item() == big_key else 0)
+    return tris, runs, n_small
 
-    idx = small.nonzero().squeeze(1)
-    if idx.numel():
-        sizes = torch.tensor(block_sizes(tile), device=box.device)
-        kw = sizes[torch.searchsorted(sizes, bw.index_select(0, idx))].clamp(max=w)
-        kh = sizes[torch.searchsorted(sizes, bh.index_select(0, idx))].clamp(max=h)
-        shape_key, order = torch.sort(kh * (w + 1) + kw)
-        keys, counts = torch.unique_consecutive(shape_key, return_counts=True)
-        idx = idx.index_select(0, order)
-        x0_all = box[0].index_select(0, idx)
-        y0_all = box[2].index_select(0, idx)
-        start = 0
-        for key, count in zip(keys.tolist(), counts.tolist(), strict=False):
-            bh_, bw_ = divmod(key, w + 1)
-            sel = slice(start, start + count)
-            start += count
-            tri, x0, y0 = idx[sel], x0_all[sel].clamp(max=w - bw_), y0_all[sel].clamp(max=h - bh_)
-            step = max(1, max_candidates // (bh_ * bw_))
-            for s in range(0, count, step):
-                yield Records(bh_, bw_, tri[s:s + step], x0[s:s + step], y0[s:s + step])
 
-    big = (~small).nonzero().squeeze(1)
-    if big.numel():
+def bin_triangles(
+    setup: TriangleSetup, runs: list[tuple[int, int, int, int]], n_small: int,
+    resolution: tuple[int, int], tile: int, max_candidates: int,
+) -> Iterator[Records]:
+    """Yield records covering every triangle's pixel box, in bounded-size chunks.
+
+    ``runs`` and ``n_small`` come from :func:`sort_by_block` (setup in that order).
+    """
+    h, w = resolution
+    for kh, kw, start, count in runs:
+        step = max(1, max_candidates // (kh * kw))
+        for s in range(start, start + count, step):
+            sel = slice(s, min(s + step, start + count))
+            x0 = setup.box[0, sel].clamp(max=w - kw)
+            y0 = setup.box[2, sel].clamp(max=h - kh)
+            yield Records(kh, kw, sel, x0, y0)
+    n = setup.box.shape[1]
+    if n_small < n:
+        big = torch.arange(n_small, n, device=setup.box.device)
         yield from _bin_large(setup, big, resolution, tile, max_candidates)
 
 

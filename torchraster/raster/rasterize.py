@@ -18,7 +18,7 @@ from __future__ import annotations
 import torch
 
 from .._validate import check_resolution, check_tensor
-from .binning import Records, TriangleSetup, bin_triangles, setup_triangles
+from .binning import Records, TriangleSetup, bin_triangles, setup_triangles, sort_by_block
 from .clip import clip_and_project, outcodes, project
 
 DEFAULT_TILE = 16
@@ -140,8 +140,10 @@ def rasterize(
                                       (h, w), cull_backfaces)
             if len(screen) == 0:
                 continue
+            screen, runs, n_small = sort_by_block(screen, (h, w), int(tile))
             setup = setup_triangles(screen)
-            for records in bin_triangles(setup, (h, w), int(tile), max_candidates):
+            for records in bin_triangles(setup, runs, n_small, (h, w), int(tile),
+                                         max_candidates):
                 _cover_records(setup, records, (h, w), keys)
     return _fragments_from_keys(clip_pos, faces, keys, (b, h, w), derivatives)
 
@@ -205,9 +207,8 @@ def _cover_records(setup: TriangleSetup, rec: Records, resolution: tuple[int, in
     runs long contiguous inner loops however small the blocks are.
     """
     h, w = resolution
-    kh, kw, n_rec = rec.kh, rec.kw, rec.tri.numel()
-    tri = rec.tri
-    coef = setup.coef.index_select(1, tri)  # (17, R)
+    kh, kw, n_rec = rec.kh, rec.kw, rec.x0.numel()
+    coef = rec.take(setup.coef)  # (17, R)
     dtype, device = coef.dtype, coef.device
     px = rec.x0.to(dtype) + torch.arange(kw, dtype=dtype, device=device)[:, None]  # (kw, R)
     py = rec.y0.to(dtype) + torch.arange(kh, dtype=dtype, device=device)[:, None]  # (kh, R)
@@ -229,9 +230,9 @@ def _cover_records(setup: TriangleSetup, rec: Records, resolution: tuple[int, in
     r = flat - local * n_rec
     offsets = (torch.arange(kh, device=device)[:, None] * w
                + torch.arange(kw, device=device)).view(-1)
-    base = setup.batch.index_select(0, tri) * (h * w) + rec.y0 * w + rec.x0
+    base = rec.take(setup.batch) * (h * w) + rec.y0 * w + rec.x0
     pixel = base.index_select(0, r) + offsets.index_select(0, local)
-    key = (_depth_key(depth) << 32) | setup.key_lo.index_select(0, tri).index_select(0, r)
+    key = (_depth_key(depth) << 32) | rec.take(setup.key_lo).index_select(0, r)
     keys.scatter_reduce_(0, pixel, key, reduce="amin")
 
 
