@@ -271,67 +271,65 @@ def _fragments_from_keys(clip_pos, faces, keys, shape, derivatives) -> Fragments
     vert_ids = faces.T.index_select(1, vis_face) + vis_item * clip_pos.shape[1]
     verts = clip_t.index_select(1, vert_ids.view(-1)).view(4, 3, -1)  # (4, 3, n_vis)
     x0, y0 = x_ndc.index_select(0, ref), y_ndc.index_select(0, ref)
-    table, front = face_tables(verts, x0, y0)  # (13, n_vis)
+    table, front = face_tables(verts, x0, y0)  # (12, n_vis)
 
-    t = table.index_select(1, row_of)  # (13, N)
-    dx = (x_ndc - x0.index_select(0, row_of))
-    dy = (y_ndc - y0.index_select(0, row_of))
-    lam = t[0:3] + t[3:6] * dx + t[6:9] * dy  # (3, N) barycentric numerators
+    # Per pixel: shear the table's local vertices once more, by the offset from the
+    # reference point (small numbers times small numbers: accurate even on slivers).
+    t = table.index_select(1, row_of)  # (12, N)
+    xs, ys, wv, zv = t[0:3], t[3:6], t[6:9], t[9:12]
+    xs = xs - (x_ndc - x0.index_select(0, row_of)) * wv
+    ys = ys - (y_ndc - y0.index_select(0, row_of)) * wv
+    lam = _cross_rows(xs, ys)  # (3, N) barycentric numerators
     total = _nonzero_or_one(lam.sum(0))
     bary = lam / total
-    depth = (t[9] + t[10] * dx + t[11] * dy) / _nonzero_or_one(t[12])
+    depth = (lam * zv).sum(0) / _nonzero_or_one((lam * wv).sum(0))
     frags = Fragments(face_id.view(b, h, w), pixels, items, corners, bary.T, depth)
     frags.front_facing = front.index_select(0, row_of)
     if derivatives:
-        # d b_i = (d l_i - b_i d sum(l)) / sum(l); per pixel step: d/d(col) = (2 / W) d/dx_ndc,
-        # d/d(row) = -(2 / H) d/dy_ndc
-        gx, gy = t[3:6], t[6:9]
+        # d l_i / d x_ndc = y'_j w_k - w_j y'_k, d l_i / d y_ndc = w_j x'_k - x'_j w_k;
+        # d b_i = (d l_i - b_i d sum(l)) / sum(l); per pixel step: d/d(col) = (2 / W)
+        # d/dx_ndc, d/d(row) = -(2 / H) d/dy_ndc
+        gx, gy = _cross_rows(ys, wv), _cross_rows(wv, xs)
         frags.bary_dx_packed = ((gx - bary * gx.sum(0)) / total * (2.0 / w)).T
         frags.bary_dy_packed = ((gy - bary * gy.sum(0)) / total * (-2.0 / h)).T
     return frags
 
 
+def _cross_rows(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """(3, N) rows i = a_j b_k - b_j a_k with (i, j, k) cyclic (the 2-D cross products)."""
+    a1, a2 = torch.cat([a[1:], a[:1]]), torch.cat([a[2:], a[:2]])
+    b1, b2 = torch.cat([b[1:], b[:1]]), torch.cat([b[2:], b[:2]])
+    return a1 * b2 - b1 * a2
+
+
 def face_tables(verts: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor):
-    """Affine screen-space tables for perspective-correct barycentrics and depth.
+    """Per-triangle local frames for perspective-correct barycentrics and depth.
 
     verts: (4, 3, n) clip-space triangles, component-major ([x|y|z|w][vertex][triangle]);
     x0, y0: (n,) an NDC reference point per triangle (one of its covered pixel centres).
 
     With homogeneous 2-D vertices v_i = (x_i, y_i, w_i) and a pixel ray p = (x, y, 1), the
     unnormalised perspective-correct barycentrics are l_i = p . (v_j x v_k) (Olano & Greer
-    1997, "Triangle scan conversion using 2D homogeneous coordinates"); b = l / sum(l). No
-    divide by w, so this holds for triangles crossing the near plane too. For float accuracy
-    the frame is sheared so that the reference point is the origin (x'_i = x_i - x0 w_i,
-    y'_i = y_i - y0 w_i; determinant 1, l unchanged): then l_i(x0 + dx, y0 + dy) =
-    l0_i + gx_i dx + gy_i dy with l0_i = x'_j y'_k - y'_j x'_k, gx_i = y'_j w_k - w_j y'_k
-    and gy_i = w_j x'_k - x'_j w_k, all products of small, local numbers. NDC depth is
-    sum(l z) / sum(l w), where sum(l w) = det[v_0 v_1 v_2] is constant over the triangle.
-    Each triangle is first scaled to max |component| = 1 (b and z are invariant), so
-    products neither under- nor overflow.
+    1997, "Triangle scan conversion using 2D homogeneous coordinates"); b = l / sum(l), and
+    NDC depth = sum(l z) / sum(l w). No divide by w, so this holds for triangles crossing
+    the near plane too. For float accuracy the frame is sheared so that the pixel is the
+    origin (x'_i = x_i - x w_i, y'_i = y_i - y w_i; determinant 1, l unchanged): then
+    l_i = x'_j y'_k - y'_j x'_k multiplies small, local numbers. The shear is split in two:
+    to the triangle's reference point here, once per triangle, and by the pixel's offset
+    from it per pixel. Each triangle is first scaled to max |component| = 1 (b and z are
+    invariant), so products neither under- nor overflow.
 
-    Returns table (13, n): rows l0 (3), gx (3), gy (3), depth numerator at the reference
-    and its x, y gradients (3), det (1); and front (n,) bool: counter-clockwise in NDC.
+    Returns table (12, n): rows x' (3), y' (3), w (3), z (3) of the scaled triangle sheared
+    to the reference point; and front (n,) bool: counter-clockwise in NDC (det M > 0).
     """
     flat = verts.detach().reshape(12, -1)
     scale = torch.maximum(flat.amax(0), flat.amin(0).neg_()).clamp_(
         min=torch.finfo(verts.dtype).tiny)
     x, y, z, w = verts / scale  # each (3, n)
     xs, ys = x - x0 * w, y - y0 * w
-
-    def nxt(t):  # vertex rows (1, 2, 0)
-        return torch.cat([t[1:], t[:1]])
-
-    def prv(t):  # vertex rows (2, 0, 1)
-        return torch.cat([t[2:], t[:2]])
-
-    lam0 = nxt(xs) * prv(ys) - nxt(ys) * prv(xs)
-    gx = nxt(ys) * prv(w) - nxt(w) * prv(ys)
-    gy = nxt(w) * prv(xs) - nxt(xs) * prv(w)
-    det = (lam0 * w).sum(0, keepdim=True)
-    depth_rows = torch.stack([(lam0 * z).sum(0), (gx * z).sum(0), (gy * z).sum(0)])
-    table = torch.cat([lam0, gx, gy, depth_rows, det])
-    front = det.detach()[0] * torch.sign(scale) > 0  # det > 0: counter-clockwise in NDC
-    return table, front
+    with torch.no_grad():
+        front = (_cross_rows(xs, ys) * w).sum(0) > 0  # sum_i l_i w_i = det M
+    return torch.cat([xs, ys, w, z]), front
 
 
 def _nonzero_or_one(t: torch.Tensor) -> torch.Tensor:
