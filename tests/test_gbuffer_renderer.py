@@ -164,3 +164,21 @@ def test_supersampling_antialiases_edges():
     f = 16 / math.tan(math.radians(20))
     area = math.pi * (f / math.sqrt(15)) ** 2
     assert abs(float(alpha4.sum()) - area) / area < 0.02
+
+
+def test_gradients_reach_textures_and_environment_twice():
+    """Optimisation loops call the renderer repeatedly: no stale cached graph."""
+    pos, faces, uvs, normals = _quad(-5.0)
+    view, proj = _camera()
+    tex = torch.full((3, 8, 8), 0.5, requires_grad=True)
+    radiance = torch.ones(3, 8, 16, requires_grad=True)
+    scene = tr.RenderScene(pos, faces, normals, uvs, materials=[
+        tr.Material(base_color_texture=tex, metallic_factor=0.0, roughness_factor=0.6)])
+    renderer = tr.Renderer((16, 16), shading="pbr")
+    for _ in range(2):
+        env = Environment(radiance, specular_size=8, specular_levels=3)
+        out = renderer(scene, view, proj, None, env)
+        (out.image * out.alpha).sum().backward()
+        for g in (tex.grad, radiance.grad):
+            assert g is not None and torch.isfinite(g).all() and g.abs().sum() > 0
+        tex.grad = radiance.grad = None

@@ -139,18 +139,22 @@ def geometry_pass(
         if mat is None or getattr(mat, slot + "_texture") is None:
             return None
         key = (id(mat), slot, dtype)
-        cache = texture_cache if texture_cache is not None else {}
-        if key not in cache:
+        raw = getattr(mat, slot + "_texture")
+        # Cache the mip pyramid of constant textures only: a texture being optimised needs a
+        # fresh pyramid (and graph) every call.
+        cache = texture_cache if texture_cache is not None and not raw.requires_grad else {}
+        entry = cache.get(key)
+        if entry is None or entry[0] is not raw:
             tex = mat.texture(slot, dtype=dtype, device=frags.pixels.device)
-            cache[key] = MipTexture(tex[None], address="wrap")
+            entry = cache[key] = (raw, MipTexture(tex[None], address="wrap"))
         grid = uv.index_select(1, sel)[None, :, None, :]  # (1, 2, 1, n_sel)
         if duv_dx is not None and texture_filter == "trilinear":
             ddx = duv_dx.index_select(1, sel)[None, :, None, :]
             ddy = duv_dy.index_select(1, sel)[None, :, None, :]
-            val = cache[key].sample(grid, ddx, ddy, filter="trilinear")
+            val = entry[1].sample(grid, ddx, ddy, filter="trilinear")
         else:
-            val = cache[key].sample(grid, filter="bilinear" if texture_filter != "nearest"
-                                    else "nearest")
+            val = entry[1].sample(grid, filter="bilinear" if texture_filter != "nearest"
+                                  else "nearest")
         return val[0, :, 0]
 
     need_material = channels & {"albedo", "alpha", "metallic", "roughness", "ao", "emissive"}
