@@ -258,3 +258,25 @@ def _apply_normal_maps(nrm, tan, mats, mat_index, sample) -> torch.Tensor:
                   + n_geo.index_select(1, sel) * xyz[2:3])
         out = out.index_copy(1, sel, mapped)
     return out
+
+
+def _sign_not_zero(v: torch.Tensor) -> torch.Tensor:
+    return torch.where(v >= 0, 1.0, -1.0).to(v.dtype)
+
+
+def encode_octahedral(normal: torch.Tensor) -> torch.Tensor:
+    """Unit normals (B, 3, H, W) -> 2-channel octahedral code (B, 2, H, W) in [-1, 1]
+    (Cigolle et al. 2014, "A Survey of Efficient Representations for Independent Unit
+    Vectors"): compact G-buffer storage, e.g. as float16 or 2 x 16-bit. Zero normals map
+    to (0, 0)."""
+    l1 = normal.abs().sum(1, keepdim=True)
+    p = normal[:, :2] / torch.where(l1 > 0, l1, torch.ones_like(l1))
+    folded = (1 - p.flip(1).abs()) * _sign_not_zero(p)
+    return torch.where(normal[:, 2:3] < 0, folded, p)
+
+
+def decode_octahedral(code: torch.Tensor) -> torch.Tensor:
+    """Inverse of :func:`encode_octahedral`: (B, 2, H, W) -> unit normals (B, 3, H, W)."""
+    z = 1 - code.abs().sum(1, keepdim=True)
+    xy = torch.where(z < 0, (1 - code.flip(1).abs()) * _sign_not_zero(code), code)
+    return _normalize(torch.cat([xy, z], dim=1), dim=1)
