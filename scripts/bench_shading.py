@@ -61,12 +61,15 @@ def point_lights(count: int, b: int):
 def timed(fn, repeats: int) -> float:
     """Median wall time of ``repeats`` calls after one warm-up call.
 
-    A warm-up slower than 1 s (big G-buffer, many lights) counts as the first sample.
+    A warm-up slower than 1 s (big G-buffer, many lights) counts as the first sample; runs
+    faster than 0.5 s are repeated 5x as often.
     """
     t0 = time.perf_counter()
     fn()
     first = time.perf_counter() - t0
     times = [first] if first > 1.0 else []
+    if first < 0.5:  # cheap runs: more samples, the shared machine is noisy
+        repeats *= 5
     while len(times) < repeats:
         t0 = time.perf_counter()
         fn()
@@ -262,7 +265,8 @@ def main() -> None:
         "## shading\n\n"
         f"Deferred lighting pass (`torchraster.shading.shade`, Cook-Torrance, point lights "
         f"with range), {s}x{s} G-buffer, batch {b}, float32, CPU; median of "
-        f"{args.repeats} runs after one warm-up (for runs over 1 s the warm-up is a sample). "
+        f"{args.repeats} runs ({5 * args.repeats} for runs under 0.5 s) after one warm-up (for "
+        f"runs over 1 s the warm-up is a sample). "
         f"Lights are evaluated as a tensor "
         f"dimension in chunks of {per_chunk} (budget `LIGHT_CHUNK_ELEMENTS` = "
         f"{LIGHT_CHUNK_ELEMENTS} pixel-lights); with autograd and more than one chunk each "

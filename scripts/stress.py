@@ -265,8 +265,7 @@ def picture(path: Path) -> None:
     """Engine vs reference face ids for spot (random colours per face) and their difference
     (red: pixels whose face differs; grey: covered in the reference)."""
     import numpy as np
-    from PIL import Image
-    from PIL import ImageDraw
+    from PIL import Image, ImageDraw
     from reference_raster import compare_fragments, load_mesh, reference_rasterize
 
     data = ROOT.parent / "shared" / "data" / "meshes" / "spot" / "spot_triangulated.obj"

@@ -14,8 +14,8 @@ The public contract (DESIGN.md) is then applied per point, without any clipping 
 - visible iff ``w > 0`` and ``-w <= z <= w`` (so faces crossing the near or far plane, or
   reaching behind the camera, are clipped exactly where the plane cuts them);
 - top-left rule on edges: a pixel centre with ``e_k == 0`` is covered iff the inward normal of
-  edge k (``sign(det) * grad e_k`` in NDC, y up) points to +x, or is horizontal-free and points
-  down (-y, i.e. towards the bottom of the image);
+  edge k (``sign(det) * grad e_k`` in NDC, y up) has a positive x component (a left edge), or
+  is exactly vertical and points down (-y: a horizontal top edge);
 - faces with ``det == 0`` (zero area in 2D homogeneous space) cover nothing;
 - ``cull_backfaces`` drops faces with ``det < 0`` (clockwise as seen by the camera);
 - nearest NDC depth wins, exact ties go to the lower face index.
@@ -131,15 +131,26 @@ def rounding_condition(
     Well-shaped faces have cond ~ 1..10; slivers and huge near-plane crossers far more."""
     with torch.enable_grad():
         tri = clip_pos[faces[face_idx]].detach().to(torch.float64).requires_grad_(True)
+        # The pixel centre's NDC coordinates are inputs too: a float32 engine rounds them.
+        p = pix.detach().to(torch.float64).requires_grad_(True)
         coef, det = edge_coefficients(tri)
-        e = coef[..., 0] * pix[:, None, 0] + coef[..., 1] * pix[:, None, 1] + coef[..., 2]
+        e = coef[..., 0] * p[:, None, 0] + coef[..., 1] * p[:, None, 1] + coef[..., 2]
         bary = e / e.sum(-1, keepdim=True)
         z = (e * tri[..., 2]).sum(-1) / det
         conds = []
         for out in (bary[:, 0], bary[:, 1], bary[:, 2], z):
-            (g,) = torch.autograd.grad(out.sum(), tri, retain_graph=True)
-            conds.append((g.abs() * tri.detach().abs()).sum((-1, -2)))
-    return torch.stack(conds[:3], -1).amax(-1), conds[3]
+            g, gp = torch.autograd.grad(out.sum(), (tri, p), retain_graph=True)
+            conds.append((g.abs() * tri.detach().abs()).sum((-1, -2))
+                         + (gp.abs() * p.detach().abs()).sum(-1))
+    cond_bary = torch.stack(conds[:3], -1).amax(-1)
+    # Depth computed *through* the barycentrics (as the engine does: z = sum b_i z_i /
+    # sum b_i w_i) inherits their rounding: on slivers the barycentrics are ill-conditioned
+    # while the depth itself is not, so add the first-order propagation of the barycentric
+    # errors, cond_bary * spread of the vertices' NDC depths.
+    w = tri.detach()[..., 3]
+    z_ndc = tri.detach()[..., 2] / torch.where(w > 0, w, torch.ones_like(w))
+    spread = torch.where((w > 0).all(-1), z_ndc.amax(-1) - z_ndc.amin(-1), torch.ones_like(w[:, 0]))
+    return cond_bary, conds[3] + cond_bary * spread
 
 
 def boundary_distance_px(

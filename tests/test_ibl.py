@@ -158,6 +158,7 @@ def test_prefiltered_specular_vs_brute_force(rough: float, smooth_environment: E
     assert float(rel.max()) < 0.03, (float(rel.mean()), float(rel.max()))
 
 
+@pytest.mark.slow
 def test_prefiltered_specular_real_env_levels(shared_data: Path) -> None:
     """On an exact level roughness there is no level blending: quadrature / importance
     sampling alone against the brute-force lobe on the real (downsampled) env."""
@@ -206,9 +207,13 @@ def test_dfg_lut_vs_quadrature(nv: float, rough: float) -> None:
 
 
 def test_dfg_lut_cached_and_sized() -> None:
+    from torchraster.shading.ibl import _dfg_lut_cpu
+
     t1 = dfg_lut(16, 64)
+    hits = _dfg_lut_cpu.cache_info().hits
     assert t1.shape == (2, 16, 16) and t1.dtype == torch.float32
-    assert dfg_lut(16, 64) is not t1  # cast copy, but the table itself is cached
+    torch.testing.assert_close(dfg_lut(16, 64, dtype=D64).float(), t1)
+    assert _dfg_lut_cpu.cache_info().hits == hits + 1  # computed once, then cached
     # A + B is a directional albedo: <= 1 up to the sampling error of the table
     assert bool((t1 >= 0).all()) and bool((t1.sum(0) <= 1.005).all())
 
@@ -224,8 +229,16 @@ def _surface(h: int = 4, w: int = 6, seed: int = 0):
     return n, v
 
 
-def test_white_furnace_lambert() -> None:
-    env = Environment(torch.ones(3, 16, 32, dtype=D64))
+SMALL = dict(specular_size=8, specular_levels=5, specular_samples=16)  # cheap chains
+
+
+@pytest.fixture(scope="module")
+def white_env() -> Environment:
+    return Environment(torch.ones(3, 8, 16, dtype=D64), **SMALL)
+
+
+def test_white_furnace_lambert(white_env: Environment) -> None:
+    env = white_env
     n, v = _surface()
     ones = torch.ones(1, 1, 4, 6, dtype=D64)
     out = shade_ibl(n, v, torch.ones(1, 3, 4, 6, dtype=D64), 0 * ones, 0.5 * ones, None, env,
@@ -235,8 +248,9 @@ def test_white_furnace_lambert() -> None:
 
 @pytest.mark.parametrize("metallic", [0.0, 1.0])
 @pytest.mark.parametrize("rough", [0.0, 0.3, 0.7, 1.0])
-def test_white_furnace_ggx_energy_compensated(metallic: float, rough: float) -> None:
-    env = Environment(torch.ones(3, 16, 32, dtype=D64), specular_size=16, specular_samples=16)
+def test_white_furnace_ggx_energy_compensated(metallic: float, rough: float,
+                                              white_env: Environment) -> None:
+    env = white_env
     n, v = _surface()
     ones = torch.ones(1, 1, 4, 6, dtype=D64)
     args = (n, v, torch.ones(1, 3, 4, 6, dtype=D64), metallic * ones, rough * ones, None, env)
@@ -253,11 +267,11 @@ def test_white_furnace_ggx_energy_compensated(metallic: float, rough: float) -> 
 def test_yaw_equals_rolled_image() -> None:
     env = torch.rand(1, 3, 16, 32, dtype=D64)
     d = torch.randn(1, 3, 5, 7, dtype=D64)
-    rotated = Environment(env, yaw=math.pi / 2)
-    rolled = Environment(torch.roll(env, -8, dims=-1))  # content at -z moves to -x
+    rotated = Environment(env, yaw=math.pi / 2, **SMALL)
+    rolled = Environment(torch.roll(env, -8, dims=-1), **SMALL)  # content at -z moves to -x
     torch.testing.assert_close(rotated.background(d), rolled.background(d))
     torch.testing.assert_close(rotated.irradiance(d), rolled.irradiance(d))
-    by_matrix = Environment(env, rotation=yaw_rotation(math.pi / 2).to(D64))
+    by_matrix = Environment(env, rotation=yaw_rotation(math.pi / 2).to(D64), **SMALL)
     torch.testing.assert_close(by_matrix.background(d), rolled.background(d))
 
 
@@ -265,7 +279,7 @@ def test_intensity_scales_everything() -> None:
     env = torch.rand(3, 8, 16, dtype=D64)
     d = torch.randn(1, 3, 2, 3, dtype=D64)
     r = torch.rand(1, 1, 2, 3, dtype=D64)
-    e1, e3 = Environment(env), Environment(env, intensity=3.0)
+    e1, e3 = Environment(env, **SMALL), Environment(env, intensity=3.0, **SMALL)
     torch.testing.assert_close(e3.background(d), 3 * e1.background(d))
     torch.testing.assert_close(e3.irradiance(d), 3 * e1.irradiance(d))
     torch.testing.assert_close(e3.specular(d, r), 3 * e1.specular(d, r))
@@ -330,7 +344,7 @@ def test_hostile_inputs_finite_values_and_gradients() -> None:
 
 
 def test_bad_inputs() -> None:
-    env = Environment(torch.ones(3, 8, 16))
+    env = Environment(torch.ones(3, 8, 16), **SMALL)
     x = torch.ones(1, 3, 2, 2)
     one = torch.ones(1, 1, 2, 2)
     with pytest.raises(ValueError, match="radiance"):
@@ -347,3 +361,17 @@ def test_bad_inputs() -> None:
         prefilter_specular(torch.ones(1, 3, 8, 16), samples=0)
     with pytest.raises(ValueError, match="size"):
         dfg_lut(1)
+
+
+def test_batched_environments_and_rotations() -> None:
+    env = torch.rand(2, 3, 8, 16, dtype=D64)
+    rot = torch.stack((torch.eye(3, dtype=D64), yaw_rotation(math.pi / 2).to(D64)))
+    batched = Environment(env, rotation=rot, intensity=torch.tensor([1.0, 2.0], dtype=D64),
+                          **SMALL)
+    d = torch.randn(2, 3, 3, 4, dtype=D64)
+    rough = torch.rand(2, 1, 3, 4, dtype=D64)
+    out = batched.specular(d, rough)
+    assert out.shape == (2, 3, 3, 4)
+    single = Environment(env[1], yaw=math.pi / 2, intensity=2.0, **SMALL)
+    torch.testing.assert_close(out[1:], single.specular(d[1:], rough[1:]))
+    torch.testing.assert_close(batched.irradiance(d)[1:], single.irradiance(d[1:]))
