@@ -48,8 +48,12 @@ def update_section(name: str, body: str, command: str | None = None) -> None:
         f"Command: `{command}`  \nMachine: {machine()}\n<!-- end {name} -->"
     )
     text = DOC.read_text() if DOC.exists() else HEADER
-    pattern = re.compile(rf"<!-- begin {re.escape(name)} -->.*?<!-- end {re.escape(name)} -->", re.S)
-    text = pattern.sub(lambda _: block, text) if pattern.search(text) else text.rstrip() + "\n\n" + block + "\n"
+    tag = re.escape(name)
+    pattern = re.compile(rf"<!-- begin {tag} -->.*?<!-- end {tag} -->", re.S)
+    if pattern.search(text):
+        text = pattern.sub(lambda _: block, text)
+    else:
+        text = text.rstrip() + "\n\n" + block + "\n"
     DOC.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=DOC.parent, suffix=".tmp")
     with os.fdopen(fd, "w") as f:

@@ -48,7 +48,8 @@ def test_perspective_depth_mapping(far):
         assert z_far[2] == pytest.approx(1.0)
     # the top edge of the vertical field of view maps to NDC y = 1
     d = 3.0
-    top, _ = _ndc(proj, torch.tensor([0.0, d * math.tan(math.radians(30)), -d], dtype=torch.float64))
+    half = d * math.tan(math.radians(30))
+    top, _ = _ndc(proj, torch.tensor([0.0, half, -d], dtype=torch.float64))
     assert top[1] == pytest.approx(1.0)
     right, _ = _ndc(proj, torch.tensor([1.5 * d * math.tan(math.radians(30)), 0, -d],
                                        dtype=torch.float64))

@@ -52,8 +52,9 @@ def test_missing_config_file(tmp_path):
 
 
 def test_cli_renders_quickstart_atomically(tmp_path, capsys):
-    text = QUICKSTART.read_text().replace("[512, 512]", "[64, 96]").replace(
-        "supersample: 2", "supersample: 1").replace("../torchraster", (REPO / "torchraster").as_posix())
+    text = QUICKSTART.read_text().replace("[512, 512]", "[64, 96]")
+    text = text.replace("supersample: 2", "supersample: 1")
+    text = text.replace("../torchraster", (REPO / "torchraster").as_posix())
     cfg = _write(tmp_path, text, "quick.yaml")
     assert main(["render", str(cfg), "--out", str(tmp_path / "out")]) == 0
     out = tmp_path / "out" / "quick"

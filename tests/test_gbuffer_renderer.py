@@ -124,7 +124,8 @@ def test_headlight_sphere_matches_closed_form_lambert():
 
 def test_plan_runs_only_what_the_scene_needs():
     scene = _sphere_scene(2)
-    view, proj = camera.look_at([0.0, 0.0, 4.0], [0.0, 0.0, 0.0]), camera.perspective(40.0, 1.0, 0.1)
+    view = camera.look_at([0.0, 0.0, 4.0], [0.0, 0.0, 0.0])
+    proj = camera.perspective(40.0, 1.0, 0.1)
     r = tr.Renderer((16, 16), shading="pbr")
     out = r(scene, view, proj, lights_from_config([{"type": "directional"}]))
     assert any(p.startswith("light directional") for p in out.plan)

@@ -11,16 +11,6 @@ import torch.nn.functional as F
 from torchraster.post import Bloom, bright_pass
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """These tensors are tiny: intra-op threads only add overhead on a shared 2-core box
-    (measured 50x slower per op under load)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def _gauss_brute(x: torch.Tensor, sigma: float) -> torch.Tensor:
     """Full-resolution 2-D Gaussian (direct 2-D kernel, zero outside the image)."""
     r = min(math.ceil(4 * sigma), x.shape[-1])

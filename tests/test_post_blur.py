@@ -12,16 +12,6 @@ import torch.nn.functional as F
 from torchraster.post import GaussianBlur, gaussian_blur
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """These tensors are tiny: intra-op threads only add overhead on a shared 2-core box
-    (measured 50x slower per op under load)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def _brute(x: torch.Tensor, sigma: float) -> torch.Tensor:
     """Direct 2-D correlation with the full (non-separated) normalized Gaussian."""
     r = math.ceil(3 * sigma)

@@ -19,17 +19,6 @@ from torchraster.post import (
     build_ssao,
 )
 
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """These tensors are tiny: intra-op threads only add overhead on a shared 2-core box
-    (measured 50x slower per op under load)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 YAML = """
 post:
   dof: {enabled: true, focus_distance: 2.5, f_number: 1.8}

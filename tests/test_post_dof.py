@@ -12,16 +12,6 @@ from torchraster.post import DepthOfField, circle_of_confusion
 from torchraster.post.dof import COC_RAMP_PX
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """These tensors are tiny: intra-op threads only add overhead on a shared 2-core box
-    (measured 50x slower per op under load)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def test_coc_thin_lens_numbers() -> None:
     # f = 50 mm, N = 2 (A = 25 mm), focus 2 m: A f / (zf - f) = 25 mm * 0.05 / 1.95.
     # z = 4 m: * (1 - 2/4) = 0.320513 mm; z = 1 m: * (1 - 2) = -0.641026 mm; z = inf: +0.641.

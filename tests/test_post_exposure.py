@@ -11,16 +11,6 @@ from torchraster.post import AutoExposure, luminance, metered_log2_luminance
 from torchraster.post.exposure import LUM_FLOOR
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """These tensors are tiny: intra-op threads only add overhead on a shared 2-core box
-    (measured 50x slower per op under load)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def _const(values: list[float], h: int = 8, w: int = 8) -> torch.Tensor:
     """(B, 3, h, w) grey images of the given luminances (grey: luminance = value)."""
     v = torch.tensor(values, dtype=torch.float64).reshape(-1, 1, 1, 1)

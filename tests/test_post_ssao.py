@@ -9,17 +9,6 @@ import torch
 
 from torchraster.post import SSAO, projection_to_intrinsics
 
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """These tensors are tiny: intra-op threads only add overhead on a shared 2-core box
-    (measured 50x slower per op under load)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 N = 48
 F_PX = N / 2 / math.tan(math.radians(30))  # 60 degree horizontal field of view
 K = torch.tensor([F_PX, F_PX, (N - 1) / 2, (N - 1) / 2], dtype=torch.float64)

@@ -19,17 +19,6 @@ from torchraster.post import (
     ToneMap,
 )
 
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """These tensors are tiny: intra-op threads only add overhead on a shared 2-core box
-    (measured 50x slower per op under load)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 D = torch.float64
 KS = torch.tensor([9.0, 9.0, 3.5, 3.5], dtype=D)  # intrinsics for 8x8 images
 

@@ -10,16 +10,6 @@ import torch
 from torchraster.post import EncodeSRGB, Exposure, ToneMap, encode_srgb, tone_curve
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """These tensors are tiny: intra-op threads only add overhead on a shared 2-core box
-    (measured 50x slower per op under load)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def _img(values: list[float], dtype: torch.dtype = torch.float64) -> torch.Tensor:
     """Values as a (1, 3, 1, N) image (same value in all channels)."""
     v = torch.tensor(values, dtype=dtype)
