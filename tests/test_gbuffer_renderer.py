@@ -198,3 +198,25 @@ def test_octahedral_normals_round_trip():
     back = decode_octahedral(code.half().double())
     angle = torch.rad2deg(torch.acos((back * n).sum(1).clamp(-1, 1)))
     assert angle.max() < 0.1
+
+
+def test_ssao_feeds_the_lighting_pass():
+    """A box corner: SSAO darkens the ambient light in the crease, and the plan says so."""
+    from torchraster.post import SSAO
+
+    floor = torch.tensor([[-2, 0, -2], [2, 0, -2], [2, 0, 2], [-2, 0, 2]], dtype=torch.float32)
+    wall = torch.tensor([[-2, 0, -2], [2, 0, -2], [2, 4, -2], [-2, 4, -2]], dtype=torch.float32)
+    pos = torch.cat([floor, wall])
+    faces = torch.tensor([[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7]])
+    normals = torch.tensor([[0.0, 1.0, 0.0]] * 4 + [[0.0, 0.0, 1.0]] * 4)
+    scene = tr.RenderScene(pos, faces, normals, materials=[
+        tr.Material(metallic_factor=0.0, roughness_factor=1.0)])
+    view = camera.look_at([0.0, 1.5, 3.0], [0.0, 0.5, -2.0])
+    proj = camera.perspective(60.0, 1.0, 0.1)
+    ambient = lights_from_config([{"type": "ambient", "intensity": 1.0}])
+    plain = tr.Renderer((48, 48), shading="pbr")(scene, view, proj, ambient)
+    occluded = tr.Renderer((48, 48), shading="pbr", ssao=SSAO(radius=0.5))(
+        scene, view, proj, ambient)
+    assert "ssao" in occluded.plan and "ssao" not in plain.plan
+    ratio = occluded.image.mean(1) / plain.image.mean(1).clamp(min=1e-6)
+    assert ratio.max() <= 1.0 + 1e-5 and ratio.min() < 0.8  # only darker, clearly in the crease

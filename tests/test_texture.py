@@ -356,6 +356,8 @@ def test_bad_inputs_raise_clear_errors() -> None:
         sample_texture(tex, uv, filter="trilinear")
     with pytest.raises(ValueError, match="duv_dy"):
         sample_texture(tex, uv, filter="trilinear", duv_dx=uv, duv_dy=uv[:, :1])
+    with pytest.raises(ValueError, match="duv_dx.*NaN"):
+        sample_texture(tex, uv, filter="trilinear", duv_dx=uv * float("nan"), duv_dy=uv)
     with pytest.raises(ValueError, match="batch"):
         sample_texture(torch.rand(2, 3, 4, 4), torch.rand(3, 2, 2, 2))
     with pytest.raises(ValueError, match="cube"):

@@ -8,7 +8,7 @@ image-based lighting (:mod:`torchraster.shading`), post-processing
 :func:`render_to_files`).
 """
 
-from . import camera
+from . import camera, post, shading
 from .config import ConfigError, load_config, parse_config
 from .io import MeshFileError, load_mesh, load_scene, load_spot
 from .material import Material
@@ -20,7 +20,7 @@ from .renderer import Renderer, RenderOutput, RenderScene
 __all__ = [
     "ConfigError", "Fragments", "Material", "Mesh", "MeshFileError", "RenderOutput",
     "RenderScene", "Renderer", "camera", "interpolate", "load_config", "load_mesh",
-    "load_scene", "load_spot", "pack_meshes", "parse_config", "rasterize", "render_config",
-    "render_to_files", "vertex_normals",
+    "load_scene", "load_spot", "pack_meshes", "parse_config", "post", "rasterize",
+    "render_config", "render_to_files", "shading", "vertex_normals",
 ]
 __version__ = "0.1.0"

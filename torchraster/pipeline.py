@@ -27,7 +27,7 @@ from .config import CameraConfig, ConfigError, RenderFile, TransformConfig
 from .hdr_io import read_hdr
 from .io import load_scene, load_texture
 from .mesh import flat as flat_mesh
-from .post.chain import PostChain
+from .post.chain import PostChain, build_ssao
 from .renderer import Renderer, RenderScene
 from .shading.ibl import Environment
 from .shading.lights import lights_from_config
@@ -171,11 +171,13 @@ def iter_render(cfg: RenderFile, device: str | torch.device = "cpu") -> Iterator
         radiance = read_hdr(cfg.resolve(cfg.environment.path)).to(device)
         env = Environment(radiance, yaw=math.radians(cfg.environment.rotation_deg),
                           intensity=cfg.environment.intensity)
+    post = PostChain.from_config(cfg.post) if cfg.post is not None else None
+    ssao = build_ssao(cfg.post) if cfg.post is not None and cfg.post.ssao.enabled else None
     renderer = Renderer(res, shading=cfg.render.shading, supersample=cfg.render.supersample,
                         cull_backfaces=cfg.render.cull_backfaces,
                         background=cfg.render.background,
-                        environment_background=bool(env and cfg.environment.background))
-    post = PostChain.from_config(cfg.post) if cfg.post is not None else None
+                        environment_background=bool(env and cfg.environment.background),
+                        ssao=ssao)
     channels = set(cfg.outputs.channels) - {"color", "alpha"}
     if post is not None and post.dof.enabled:
         channels.add("depth")

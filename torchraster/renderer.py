@@ -109,6 +109,8 @@ class Renderer(nn.Module):
     s x the resolution and box-filter down (anti-aliasing). background: RGB for empty
     pixels (replaced by the environment when ``environment_background``).
     texture_filter: "trilinear" | "bilinear" | "nearest".
+    ssao: an enabled ``torchraster.post.SSAO`` module: its AO (from depth and view-space
+    normals) multiplies the material AO before lighting ("pbr" shading only).
     """
 
     def __init__(
@@ -121,6 +123,7 @@ class Renderer(nn.Module):
         background: Sequence[float] = (0.0, 0.0, 0.0),
         environment_background: bool = True,
         texture_filter: str = "trilinear",
+        ssao: nn.Module | None = None,
     ) -> None:
         super().__init__()
         self.resolution = check_resolution(resolution)
@@ -138,6 +141,7 @@ class Renderer(nn.Module):
                              persistent=False)
         self.environment_background = environment_background
         self.texture_filter = texture_filter
+        self.ssao = ssao if ssao is not None and getattr(ssao, "enabled", True) else None
         self._texture_cache: dict = {}
 
     def plan(self, scene: RenderScene, lights: Lights | None, environment: Environment | None,
@@ -157,6 +161,9 @@ class Renderer(nn.Module):
                     if group is not None:
                         count = getattr(group, "count", None)
                         passes.append(f"light {kind}" + (f" x{count}" if count else ""))
+            if self.ssao is not None and (lights is not None or environment is not None):
+                needed |= {"depth"}
+                passes.append("ssao")
             if environment is not None:
                 passes.append("ibl")
             if lights is None and environment is None:
@@ -227,6 +234,12 @@ class Renderer(nn.Module):
                     return shade_ibl(n, v, a, m, r, None, environment)
             if lights is None:
                 lights = Lights()
+            if self.ssao is not None:
+                normal_view = torch.einsum("bij,bjhw->bihw", view[:, :3, :3].to(
+                    gb["normal"].dtype), gb["normal"])
+                depth = torch.where(mask > 0, gb["depth"], torch.zeros_like(gb["depth"]))
+                gb["ao"] = gb["ao"] * self.ssao(depth, normal_view, projection=proj.to(
+                    depth.dtype))
             radiance = shade(gb["position"], gb["normal"], gb["albedo"], gb["metallic"],
                              gb["roughness"], gb["ao"], gb["emissive"], mask, eye, lights,
                              ibl=ibl)

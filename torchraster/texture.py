@@ -260,11 +260,11 @@ def _check_uv_inputs(
         if duv_dx is None or duv_dy is None:
             raise ValueError("duv_dx, duv_dy: required for filter='trilinear' (or give lod)")
         for name, d in (("duv_dx", duv_dx), ("duv_dy", duv_dy)):
-            check_tensor(name, d, ("B", 2, "H", "W"), floating=True)
+            check_tensor(name, d, ("B", 2, "H", "W"), floating=True, finite=True)
             if d.shape != uv.shape:
                 raise ValueError(f"{name}: expected shape {tuple(uv.shape)}, got {tuple(d.shape)}")
     if lod is not None:
-        check_tensor("lod", lod, ("B", 1, "H", "W"), floating=True)
+        check_tensor("lod", lod, ("B", 1, "H", "W"), floating=True, finite=True)
         if lod.shape[-2:] != uv.shape[-2:]:
             want = f"(B, 1, {uv.shape[2]}, {uv.shape[3]})"
             raise ValueError(f"lod: expected {want}, got {tuple(lod.shape)}")
