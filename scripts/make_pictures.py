@@ -4,7 +4,8 @@
 
 Writes: pbr_<asset>_env.png (image-based lighting, environment as background),
 pbr_<asset>_lights.png (point + spot + a dim ambient), gbuffer_<asset>.png (albedo,
-normal, roughness, metallic, AO, depth) for DamagedHelmet and MaterialsVariantsShoe.
+normal, roughness, metallic, AO, depth) for DamagedHelmet and MaterialsVariantsShoe, and
+pbr_overview.png (the four lit images side by side).
 """
 
 from __future__ import annotations
@@ -94,6 +95,9 @@ def main() -> None:
         strip = np.concatenate(tiles, axis=1)[::2, ::2]
         skio.imsave(OUT / f"gbuffer_{name}.png", strip, check_contrast=False)
         print(f"{name}: {time.time() - t:.1f} s; plan: {'; '.join(lit.plan)}")
+    strip = [skio.imread(OUT / f"pbr_{name}_{kind}.png") for name in ASSETS
+             for kind in ("env", "lights")]
+    skio.imsave(OUT / "pbr_overview.png", np.concatenate(strip, axis=1), check_contrast=False)
 
 
 if __name__ == "__main__":
