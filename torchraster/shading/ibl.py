@@ -15,6 +15,10 @@ reflection r = reflect(-v, n)::
     diff = (1 - metallic) albedo * irradiance(n) / pi * (1 - E)
     out  = ao * (diff + spec)
 
+Diffuse irradiance comes from a brute-force irradiance map (default, :func:`irradiance_map`)
+or from 9 SH coefficients (:func:`sh_project`, :func:`irradiance_sh`); scripts/bench_quality.py
+measures both against a full brute-force integral.
+
 All directions are world space, y up; the environment's lat-long layout is that of
 :func:`torchraster.texture.latlong_uv` (image centre = -z). The environment can be rotated
 (``R``: an env-space direction d appears in the world at ``R d``) and scaled (intensity).
@@ -225,7 +229,7 @@ def irradiance_sh(sh: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
 
 
 def irradiance_map(
-    env: torch.Tensor, *, height: int = 32, source_height: int | None = 64
+    env: torch.Tensor, *, height: int = 16, source_height: int | None = 32
 ) -> torch.Tensor:
     """Brute-force irradiance map: ``E(n) = sum_texels L max(0, n.w) dw`` for the texel
     centres of an ``height x 2 height`` lat-long map (look it up bilinearly by normal).
@@ -379,10 +383,10 @@ def prefilter_specular(
     *,
     size: int = 128,
     levels: int = 16,
-    samples: int = 64,
+    samples: int = 32,
     quadrature_budget: int = 2**25,
     texels_per_lobe: float = 4.0,
-    source_height: int | None = 256,
+    source_height: int | None = None,
     chunk: int = 16,
 ) -> list[torch.Tensor]:
     """Prefiltered specular mip chain of a lat-long radiance map (Karis 2013, n = v = r).
@@ -529,14 +533,17 @@ class Environment:
             at ``rotation @ d``. Combined with ``yaw`` as ``rotation @ yaw_rotation(yaw)``.
         yaw: rotation about +y in radians.
         intensity: scale on all radiance (float or ``(B,)`` tensor).
-        diffuse: ``"map"`` (brute-force irradiance map, default: 0.1 % mean error on
-            venice_sunset_1k) or ``"sh"`` (9 SH coefficients, Ramamoorthi & Hanrahan: ~2 %
-            mean, up to ~17 % for a sun on the horizon); see :meth:`irradiance`.
-        irradiance_height, irradiance_source_height: knobs of :func:`irradiance_map`.
+        diffuse: ``"map"`` (brute-force irradiance map, default: 0.4 % mean error on
+            venice_sunset_1k, the fastest setting within 1 %) or ``"sh"`` (9 SH
+            coefficients, Ramamoorthi & Hanrahan: ~2 % mean, up to ~17 % for a sun on the
+            horizon); see :meth:`irradiance`.
+        irradiance_height, irradiance_source_height: knobs of :func:`irradiance_map`
+            (defaults 16 rows from a 32-row source: fastest within 1 % in the benchmark).
         specular_size, specular_levels, specular_samples, specular_source_height: knobs
-            of :func:`prefilter_specular`. Defaults (128, 16, 64, 256): the fastest setting
-            within 1 % mean error of a brute-force GGX lobe on venice_sunset_1k in
-            scripts/bench_quality.py (docs/benchmarks.md, section quality-ibl).
+            of :func:`prefilter_specular`. Defaults (128, 16, 32, None = full resolution):
+            the fastest setting within 1 % mean error (0.96 %) of a brute-force GGX lobe on
+            venice_sunset_1k in scripts/bench_quality.py (docs/benchmarks.md,
+            section quality-ibl).
 
     The SH coefficients and the specular chain are computed on first use and kept. If
     ``radiance`` requires grad, build a new Environment per optimisation step.
@@ -551,11 +558,11 @@ class Environment:
         intensity: float | torch.Tensor = 1.0,
         specular_size: int = 128,
         specular_levels: int = 16,
-        specular_samples: int = 64,
-        specular_source_height: int | None = 256,
+        specular_samples: int = 32,
+        specular_source_height: int | None = None,
         diffuse: str = "map",
-        irradiance_height: int = 32,
-        irradiance_source_height: int | None = 64,
+        irradiance_height: int = 16,
+        irradiance_source_height: int | None = 32,
     ) -> None:
         if isinstance(radiance, torch.Tensor) and radiance.dim() == 3:
             radiance = radiance[None]
