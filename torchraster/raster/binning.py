@@ -133,7 +133,8 @@ def sort_by_block(tris: ScreenTriangles, resolution: tuple[int, int], tile: int
     shape_key, order = torch.sort(shape_key)
     keys, counts = torch.unique_consecutive(shape_key, return_counts=True)
     tris = ScreenTriangles(
-        pos=tris.pos.index_select(2, order), area=tris.area.index_select(0, order),
+        pos=tris.pos.view(9, -1).index_select(1, order).view(3, 3, -1),
+        area=tris.area.index_select(0, order),
         box=box.index_select(1, order), face=tris.face.index_select(0, order),
         batch=tris.batch.index_select(0, order))
     runs, start = [], 0

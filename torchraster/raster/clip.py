@@ -142,7 +142,8 @@ def clip_and_project(
     keep = ok.nonzero().squeeze(1)
     box = torch.stack([xmin, xmax, ymin, ymax]).index_select(1, keep).long()
     return ScreenTriangles(
-        pos=pos.index_select(2, keep), area=area.index_select(0, keep), box=box,
+        pos=pos.view(9, -1).index_select(1, keep).view(3, 3, -1),  # 2-D: fast path
+        area=area.index_select(0, keep), box=box,
         face=face_out.index_select(0, keep), batch=batch_out.index_select(0, keep))
 
 

@@ -250,11 +250,13 @@ def _fragments_from_keys(clip_pos, faces, keys, shape, derivatives) -> Fragments
     face = keys.index_select(0, pixels) & 0xFFFFFFFF
     face_id = torch.full((b * h * w,), -1, dtype=torch.int64, device=keys.device)
     face_id.index_copy_(0, pixels, face)
-    items = pixels // (h * w)
-    corners = faces.T.index_select(1, face)  # (3, N) local vertex ids, vertex-major
+    # Exact float64 floor division (pixel indices < 2**52), faster than int64 division.
+    rows_all = ((pixels.to(torch.float64) + 0.5) * (1.0 / w)).long()  # b * H + row
+    items = ((rows_all.to(torch.float64) + 0.5) * (1.0 / h)).long()
+    col = pixels - rows_all * w
+    row = rows_all - items * h
+    corners = faces.index_select(0, face).T.contiguous()  # (3, N) vertex ids, vertex-major
     dtype = clip_pos.dtype
-    col = pixels % w
-    row = (pixels // w) - items * h
     x_ndc = (2 * col + 1).to(dtype).mul_(1.0 / w).sub_(1.0)
     y_ndc = (2 * row + 1).to(dtype).mul_(-1.0 / h).add_(1.0)
 
@@ -268,21 +270,30 @@ def _fragments_from_keys(clip_pos, faces, keys, shape, derivatives) -> Fragments
     ref.scatter_reduce_(0, row_of, torch.arange(pixels.numel(), device=keys.device), "amin")
     vis_item, vis_face = vis // n_faces, vis % n_faces
     clip_t = clip_pos.permute(2, 0, 1).reshape(4, -1)
-    vert_ids = faces.T.index_select(1, vis_face) + vis_item * clip_pos.shape[1]
-    verts = clip_t.index_select(1, vert_ids.view(-1)).view(4, 3, -1)  # (4, 3, n_vis)
+    vert_ids = faces.index_select(0, vis_face).T + vis_item * clip_pos.shape[1]
+    verts = clip_t.index_select(1, vert_ids.reshape(-1)).view(4, 3, -1)  # (4, 3, n_vis)
     x0, y0 = x_ndc.index_select(0, ref), y_ndc.index_select(0, ref)
-    table, front = face_tables(verts, x0, y0)  # (12, n_vis)
+    table, z_clip, front = face_tables(verts, x0, y0)  # (13, n_vis)
 
     # Per pixel: shear the table's local vertices once more, by the offset from the
     # reference point (small numbers times small numbers: accurate even on slivers).
-    t = table.index_select(1, row_of)  # (12, N)
-    xs, ys, wv, zv = t[0:3], t[3:6], t[6:9], t[9:12]
+    t = table[:12].index_select(1, row_of)  # (12, N)
+    xs, ys, wv, zv = t[0:3], t[3:6], t[6:9], t[9:12]  # zv: z_ndc0, dz_ndc1, dz_ndc2
     xs = xs - (x_ndc - x0.index_select(0, row_of)) * wv
     ys = ys - (y_ndc - y0.index_select(0, row_of)) * wv
     lam = _cross_rows(xs, ys)  # (3, N) barycentric numerators
     total = _nonzero_or_one(lam.sum(0))
     bary = lam / total
-    depth = _depth(lam, zv, wv)
+    lw = lam * wv
+    den = _nonzero_or_one(lw.sum(0))
+    # NDC depth sum(l z) / sum(l w), written as z_0 + sum_i beta_i (z_i - z_0) with the
+    # screen-space weights beta_i = l_i w_i / sum(l w) and NDC z_i = z_i / w_i: differences
+    # of nearby depths keep their precision (3e-8 instead of 2e-7 in float32 at z ~ 1).
+    depth = zv[0] + (lw[1] * zv[1] + lw[2] * zv[2]) / den
+    far_from_eye = table[12].index_select(0, row_of) > 0
+    if not bool(far_from_eye.all()):  # faces with a vertex near / behind the eye plane
+        ratio = (lam * z_clip.index_select(1, row_of)).sum(0) / den
+        depth = torch.where(far_from_eye, depth, ratio)
     frags = Fragments(face_id.view(b, h, w), pixels, items, corners, bary.T, depth)
     frags.front_facing = front.index_select(0, row_of)
     if derivatives:
@@ -295,28 +306,10 @@ def _fragments_from_keys(clip_pos, faces, keys, shape, derivatives) -> Fragments
     return frags
 
 
-def _depth(lam: torch.Tensor, z: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """NDC depth sum(l z) / sum(l w) from barycentric numerators l and clip z, w (3, N).
-
-    Written as z_0 + sum_i beta_i (z_i - z_0) with the screen-space weights beta_i =
-    l_i w_i / sum(l w) and NDC z_i = z_i / w_i: the differences of nearby depths keep their
-    precision (3e-8 instead of 2e-7 in float32 at z ~ 1). Where a vertex has w <= 1e-3 (a face
-    crossing the near plane, or close to the eye plane) the plain ratio is used.
-    """
-    lw = lam * w
-    den = _nonzero_or_one(lw.sum(0))
-    usable = w > 1e-3  # the triangle is scaled to max |component| = 1: |z / w| <= 1e3
-    ok = usable.all(0)
-    z_ndc = z / torch.where(usable, w, torch.ones_like(w))
-    affine = z_ndc[0] + (lw[1] * (z_ndc[1] - z_ndc[0]) + lw[2] * (z_ndc[2] - z_ndc[0])) / den
-    return torch.where(ok, affine, (lam * z).sum(0) / den)
-
-
 def _cross_rows(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """(3, N) rows i = a_j b_k - b_j a_k with (i, j, k) cyclic (the 2-D cross products)."""
-    a1, a2 = torch.cat([a[1:], a[:1]]), torch.cat([a[2:], a[:2]])
-    b1, b2 = torch.cat([b[1:], b[:1]]), torch.cat([b[2:], b[:2]])
-    return a1 * b2 - b1 * a2
+    return torch.stack([a[1] * b[2] - b[1] * a[2], a[2] * b[0] - b[2] * a[0],
+                        a[0] * b[1] - b[0] * a[1]])
 
 
 def face_tables(verts: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor):
@@ -336,8 +329,11 @@ def face_tables(verts: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor):
     from it per pixel. Each triangle is first scaled to max |component| = 1 (b and z are
     invariant), so products neither under- nor overflow.
 
-    Returns table (12, n): rows x' (3), y' (3), w (3), z (3) of the scaled triangle sheared
-    to the reference point; and front (n,) bool: counter-clockwise in NDC (det M > 0).
+    Returns table (13, n): rows x' (3), y' (3), w (3) of the scaled triangle sheared to
+    the reference point, NDC z of vertex 0 and z_ndc_i - z_ndc_0 for i = 1, 2, and 1 where
+    every w_i > 1e-3 (NDC z usable; the triangle is scaled to max |component| = 1, so
+    |z / w| <= 1e3) else 0; z (3, n) the scaled clip z (for the plain ratio elsewhere); and
+    front (n,) bool: counter-clockwise in NDC (det M > 0).
     """
     flat = verts.detach().reshape(12, -1)
     scale = torch.maximum(flat.amax(0), flat.amin(0).neg_()).clamp_(
@@ -346,7 +342,11 @@ def face_tables(verts: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor):
     xs, ys = x - x0 * w, y - y0 * w
     with torch.no_grad():
         front = (_cross_rows(xs, ys) * w).sum(0) > 0  # sum_i l_i w_i = det M
-    return torch.cat([xs, ys, w, z]), front
+        usable = (w > 1e-3).all(0)
+    z_ndc = z / torch.where(usable, w, torch.ones_like(w))
+    z_rows = torch.stack([z_ndc[0], z_ndc[1] - z_ndc[0], z_ndc[2] - z_ndc[0]])
+    z_rows = torch.where(usable, z_rows, torch.zeros_like(z_rows))
+    return torch.cat([xs, ys, w, z_rows, usable[None].to(w.dtype)]), z, front
 
 
 def _nonzero_or_one(t: torch.Tensor) -> torch.Tensor:

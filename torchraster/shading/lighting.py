@@ -9,9 +9,9 @@
   (``torch.utils.checkpoint``), so memory does not grow with the number of lights.
 * Ambient (SH) light: Lambert diffuse from the SH irradiance at n, plus a specular term
   from the SH irradiance at the reflection vector weighted by the split-sum environment
-  BRDF of our Cook-Torrance BRDF (Karis 2013; a small table computed once by quadrature,
-  :func:`dfg_lut`). Exact for a constant ambient up to the table's bilinear
-  interpolation; applied whatever the shading model.
+  BRDF of our Cook-Torrance BRDF (Karis 2013; the cached split-sum table
+  :func:`torchraster.shading.ibl.dfg_lut`, shared with image-based lighting). Exact for a
+  constant ambient up to the table's accuracy; applied whatever the shading model.
 * Image-based lighting is a hook: pass ``ibl=callable`` (e.g. a closure over
   ``torchraster.shading.ibl.shade_ibl`` and an environment) or None.
 """
@@ -21,7 +21,6 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import torch
-import torch.nn.functional as F
 from torch.utils.checkpoint import checkpoint
 
 from torchraster._validate import check_tensor
@@ -29,11 +28,10 @@ from torchraster.shading.brdf import (
     DIELECTRIC_F0,
     MIN_COS,
     MIN_ROUGHNESS,
-    d_ggx,
     dot,
     safe_normalize,
-    v_smith_ggx_correlated,
 )
+from torchraster.shading.ibl import dfg_lut, lookup_dfg
 from torchraster.shading.lights import (
     DirectionalLights,
     Lights,
@@ -50,12 +48,10 @@ from torchraster.shading.models import ShadingModel, Surface, get_model
 #: temporary at 48 MB; at 512x512, batch 4 that is 4 lights per chunk.
 LIGHT_CHUNK_ELEMENTS: int = 2**22
 
-#: Resolution (roughness x n.v) of the environment-BRDF table used by the ambient light,
-#: and the half-vector quadrature (theta x phi) that fills it once per process (~0.1 s).
+#: Size and sample count of the split-sum DFG table (``ibl.dfg_lut``, the one table of
+#: the project) used by the ambient light's specular term.
 DFG_LUT_SIZE: int = 32
-_DFG_THETA: int = 96
-_DFG_PHI: int = 16
-_DFG_CACHE: dict = {}
+DFG_LUT_SAMPLES: int = 512
 
 IBLHook = Callable[
     [torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor
@@ -64,57 +60,13 @@ IBLHook = Callable[
 _LOW_PRECISION = (torch.float16, torch.bfloat16)
 
 
-def _dfg_table(size: int) -> torch.Tensor:
-    """(2, size, size) float64 table of the split-sum terms A, B of our Cook-Torrance BRDF.
-
-    ``integral of D V (n.l) (f0 (1 - Fc) + Fc) dw_l = f0 A + B`` with ``Fc = (1 - v.h)^5``,
-    by quadrature over the half vector (``dw_l = 4 (v.h) dw_h``, theta_h graded towards
-    the pole so the GGX peak at MIN_ROUGHNESS is resolved). Rows: roughness from
-    MIN_ROUGHNESS to 1, columns: sqrt(n.v) from 0 to 1 (n.v floored at MIN_COS).
-    """
-    f64 = torch.float64
-    rough = torch.linspace(MIN_ROUGHNESS, 1.0, size, dtype=f64).view(size, 1, 1, 1)
-    # columns are uniform in sqrt(n.v): dense where the table changes fast (grazing views)
-    nv = (torch.linspace(0.0, 1.0, size, dtype=f64) ** 2).clamp_min(MIN_COS).view(1, size, 1, 1)
-    s = torch.linspace(0.0, 1.0, _DFG_THETA, dtype=f64)
-    theta = 0.5 * torch.pi * s**3
-    phi = (torch.arange(_DFG_PHI, dtype=f64) + 0.5) * (torch.pi / _DFG_PHI)  # half: symmetric
-    st, ct = theta.sin().view(-1, 1), theta.cos().view(-1, 1)
-    hx, hz = st * phi.cos(), ct.expand(-1, _DFG_PHI)
-    vx = torch.sqrt(1.0 - nv * nv)
-    vh = vx * hx + nv * hz  # (1, size, T, P); v = (sin, 0, cos)
-    nl = 2.0 * vh * hz - nv
-    ok = (vh > 0) & (nl > 0)
-    w = d_ggx(hz, rough) * v_smith_ggx_correlated(nv, nl, rough) * nl * 4.0 * vh
-    w = torch.where(ok, w, 0.0)
-    fc = (1.0 - vh.clamp(0.0, 1.0)) ** 5
-    ab = torch.stack([w * (1.0 - fc), w * fc])  # (2, R, N, T, P)
-    inner = ab.mean(dim=-1) * 2.0 * torch.pi  # over phi
-    table = torch.trapezoid(inner * theta.sin(), theta, dim=-1)
-    # Divide by the same quadrature of the GGX normalisation integral (exactly 1): cancels
-    # most of the error of resolving the sharp peak at low roughness.
-    d = d_ggx(ct.view(1, 1, -1), rough.view(size, 1, 1))
-    norm = 2.0 * torch.pi * torch.trapezoid(d * (ct * st).view(1, 1, -1), theta, dim=-1)
-    return table / norm.view(1, size, 1)
-
-
-def dfg_lut(device: torch.device | str | None = None, dtype: torch.dtype = torch.float32):
-    """Cached ``(2, S, S)`` table of :func:`_dfg_table` (S = DFG_LUT_SIZE) on device/dtype."""
-    key = (str(device), dtype)
-    if key not in _DFG_CACHE:
-        if "cpu" not in _DFG_CACHE:
-            _DFG_CACHE["cpu"] = _dfg_table(DFG_LUT_SIZE)
-        _DFG_CACHE[key] = _DFG_CACHE["cpu"].to(device=device, dtype=dtype)
-    return _DFG_CACHE[key]
-
-
 def env_brdf(
     f0: torch.Tensor, roughness: torch.Tensor, n_dot_v: torch.Tensor
 ) -> torch.Tensor:
     """Directional albedo of the Cook-Torrance specular lobe, ``f0 * A + B`` (split sum).
 
     Karis 2013's environment BRDF, tabulated for *this* BRDF (height-correlated Smith) by
-    :func:`dfg_lut` and looked up bilinearly (differentiable in roughness and n.v).
+    ``ibl.dfg_lut`` and looked up bilinearly (differentiable in roughness and n.v).
 
     Args:
         f0: ``(B, 3, H, W)`` specular colour.
@@ -124,14 +76,9 @@ def env_brdf(
     Returns:
         ``(B, 3, H, W)``, dimensionless, in [0, 1].
     """
-    b = roughness.shape[0]
-    lut = dfg_lut(roughness.device, roughness.dtype)
-    x = 2.0 * torch.sqrt(n_dot_v.clamp(MIN_COS, 1.0)) - 1.0
-    y = 2.0 * (roughness.clamp(MIN_ROUGHNESS, 1.0) - MIN_ROUGHNESS) / (1.0 - MIN_ROUGHNESS) - 1.0
-    grid = torch.cat([x, y], dim=1).permute(0, 2, 3, 1)  # (B, H, W, 2)
-    ab = F.grid_sample(lut[None].expand(b, -1, -1, -1), grid, mode="bilinear",
-                       padding_mode="border", align_corners=True)
-    return f0 * ab[:, :1] + ab[:, 1:]
+    lut = dfg_lut(DFG_LUT_SIZE, DFG_LUT_SAMPLES, device=roughness.device, dtype=roughness.dtype)
+    scale, bias = lookup_dfg(lut, n_dot_v.clamp(MIN_COS, 1.0), roughness.clamp(MIN_ROUGHNESS, 1.0))
+    return f0 * scale + bias
 
 
 def _chunks(count: int, per_chunk: int) -> list[slice]:
