@@ -236,7 +236,40 @@ def _cover_records(setup: TriangleSetup, rec: Records, resolution: tuple[int, in
     keys.scatter_reduce_(0, pixel, key, reduce="amin")
 
 
+_PIXELS_PER_PASS = 2**20  # batch items are decoded in groups of about this many pixels
+
+
 def _fragments_from_keys(clip_pos, faces, keys, shape, derivatives) -> Fragments:
+    """Decode face ids and recompute barycentrics and depth, a group of batch items at a
+    time, so per-pixel temporaries stay near _PIXELS_PER_PASS pixels whatever the batch
+    (time then grows linearly with the batch, and peak memory beyond the outputs does not).
+    """
+    b, h, w = shape
+    per = max(1, _PIXELS_PER_PASS // (h * w))
+    if b <= per:
+        return _fragment_pass(clip_pos, faces, keys, shape, derivatives)
+    parts = [_fragment_pass(clip_pos[i:i + per], faces, keys[i * h * w:(i + per) * h * w],
+                            (min(per, b - i), h, w), derivatives) for i in range(0, b, per)]
+    offsets = range(0, b, per)
+
+    def cat(name, dim=0):
+        values = [getattr(p, name) for p in parts]
+        return None if values[0] is None else torch.cat(values, dim)
+
+    frags = Fragments(
+        torch.cat([p.face_id for p in parts]),
+        torch.cat([p.pixels + i * h * w for p, i in zip(parts, offsets, strict=True)]),
+        torch.cat([p.items + i for p, i in zip(parts, offsets, strict=True)]),
+        cat("corners", 1), torch.cat([p.bary_packed.T for p in parts], 1).T,
+        cat("depth_packed"))
+    frags.front_facing = cat("front_facing")
+    if derivatives:
+        frags.bary_dx_packed = torch.cat([p.bary_dx_packed.T for p in parts], 1).T
+        frags.bary_dy_packed = torch.cat([p.bary_dy_packed.T for p in parts], 1).T
+    return frags
+
+
+def _fragment_pass(clip_pos, faces, keys, shape, derivatives) -> Fragments:
     """Decode face ids and recompute differentiable barycentrics and depth.
 
     The per-pixel work is an affine evaluation: every visible (item, face) gets a small
