@@ -688,7 +688,7 @@ def shade_ibl(
     multiscatter: bool = True,
     f0_dielectric: float = 0.04,
     lut_size: int = 16,
-    lut_samples: int = 256,
+    lut_samples: int = 32,
 ) -> torch.Tensor:
     """Image-based lighting of a metallic-roughness surface (split sum, see module doc).
 
@@ -704,7 +704,7 @@ def shade_ibl(
         multiscatter: Fdez-Aguera / Filament energy compensation of the specular lobe.
         f0_dielectric: reflectance at normal incidence for metallic = 0. f90 follows
             Filament, ``saturate(50 * 0.33 * f0)``, so f0 = 0 turns specular off.
-        lut_size, lut_samples: knobs of :func:`dfg_lut`; defaults (16, 256): the fastest
+        lut_size, lut_samples: knobs of :func:`dfg_lut`; defaults (16, 32): the fastest
             within 1 % mean error in scripts/bench_quality.py.
 
     Returns:

@@ -51,7 +51,7 @@ LIGHT_CHUNK_ELEMENTS: int = 2**22
 #: Size and sample count of the split-sum DFG table (``ibl.dfg_lut``, the one table of
 #: the project) used by the ambient light's specular term.
 DFG_LUT_SIZE: int = 32
-DFG_LUT_SAMPLES: int = 512
+DFG_LUT_SAMPLES: int = 96
 
 IBLHook = Callable[
     [torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor
