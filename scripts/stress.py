@@ -306,7 +306,7 @@ def picture(path: Path) -> None:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--n", type=int, default=1000, help="number of random scenes")
+    parser.add_argument("--n", type=int, default=5000, help="number of random scenes")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-picture", action="store_true")
     args = parser.parse_args()

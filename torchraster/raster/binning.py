@@ -115,7 +115,8 @@ def block_sizes(tile: int) -> list[int]:
 
 def sort_by_block(tris: ScreenTriangles, resolution: tuple[int, int], tile: int
                   ) -> tuple[ScreenTriangles, list[tuple[int, int, int, int]], int]:
-    """Order triangles by the block shape they need, so each shape is one contiguous run.
+    """Order triangles by the block shape they need, so each shape is one contiguous run,
+    dropping the ones flagged invalid (culled) in the same gather.
 
     Returns the reordered triangles, the runs (kh, kw, start, count) of small triangles, and
     the index where the large triangles (boxes over ``tile`` pixels) begin.
@@ -126,11 +127,16 @@ def sort_by_block(tris: ScreenTriangles, resolution: tuple[int, int], tile: int
     bh = box[3] - box[2] + 1
     small = (bw <= tile) & (bh <= tile)
     sizes = torch.tensor(block_sizes(tile), device=box.device)
-    kw = sizes[torch.searchsorted(sizes, bw.clamp(max=tile))].clamp(max=w)
-    kh = sizes[torch.searchsorted(sizes, bh.clamp(max=tile))].clamp(max=h)
+    kw = sizes[torch.searchsorted(sizes, bw.clamp(1, tile))].clamp(max=w)
+    kh = sizes[torch.searchsorted(sizes, bh.clamp(1, tile))].clamp(max=h)
     big_key = (h + 1) * (w + 1)
     shape_key = torch.where(small, kh * (w + 1) + kw, big_key)
+    if tris.valid is not None:  # culled triangles sort last and are cut off
+        shape_key = torch.where(tris.valid, shape_key, big_key + 1)
     shape_key, order = torch.sort(shape_key)
+    if tris.valid is not None:
+        n_valid = int(tris.valid.sum())
+        shape_key, order = shape_key[:n_valid], order[:n_valid]
     keys, counts = torch.unique_consecutive(shape_key, return_counts=True)
     tris = ScreenTriangles(
         pos=tris.pos.view(9, -1).index_select(1, order).view(3, 3, -1),
@@ -142,7 +148,7 @@ def sort_by_block(tris: ScreenTriangles, resolution: tuple[int, int], tile: int
         if key != big_key:
             runs.append((key // (w + 1), key % (w + 1), start, count))
         start += count
-    n_small = start - (counts[-1].item() if keys[-1].item() == big_key else 0)
+    n_small = start - (counts[-1].item() if keys.numel() and keys[-1].item() == big_key else 0)
     return tris, runs, n_small
 
 

@@ -37,6 +37,7 @@ class ScreenTriangles:
     box:   (4, N) int64 inclusive pixel box xmin, xmax, ymin, ymax, clamped to the image
     face:  (N,) int64 original face index
     batch: (N,) int64 batch item
+    valid: (N,) bool, False for culled triangles (None: all valid)
     """
 
     pos: torch.Tensor
@@ -44,6 +45,7 @@ class ScreenTriangles:
     box: torch.Tensor
     face: torch.Tensor
     batch: torch.Tensor
+    valid: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return self.face.shape[0]
@@ -139,12 +141,11 @@ def clip_and_project(
     ymin = torch.ceil(y.amin(0).clamp_(min=0))
     ymax = torch.floor(y.amax(0).clamp_(max=h - 1))
     ok &= (xmin <= xmax) & (ymin <= ymax)
-    keep = ok.nonzero().squeeze(1)
-    box = torch.stack([xmin, xmax, ymin, ymax]).index_select(1, keep).long()
-    return ScreenTriangles(
-        pos=pos.view(9, -1).index_select(1, keep).view(3, 3, -1),  # 2-D: fast path
-        area=area.index_select(0, keep), box=box,
-        face=face_out.index_select(0, keep), batch=batch_out.index_select(0, keep))
+    # Culled triangles stay in the arrays, flagged: binning drops them in the same gather
+    # that orders the others by block shape (one permutation instead of two).
+    box = torch.stack([xmin, xmax, ymin, ymax]).nan_to_num_(0.0).long()
+    return ScreenTriangles(pos=pos, area=area, box=box, face=face_out, batch=batch_out,
+                           valid=ok)
 
 
 def _lex_less(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

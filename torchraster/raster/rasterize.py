@@ -138,9 +138,9 @@ def rasterize(
                                                     max_candidates // 8):
             screen = clip_and_project(pos, screen_pos, codes, faces, face_ids, batch_ids,
                                       (h, w), cull_backfaces)
+            screen, runs, n_small = sort_by_block(screen, (h, w), int(tile))
             if len(screen) == 0:
                 continue
-            screen, runs, n_small = sort_by_block(screen, (h, w), int(tile))
             setup = setup_triangles(screen)
             for records in bin_triangles(setup, runs, n_small, (h, w), int(tile),
                                          max_candidates):
