@@ -42,13 +42,18 @@ def interpolate_packed(
         ids = ids + frags.items * n_vert
     # Component-major gather (C, 3, N): every row a contiguous vector.
     attrs_t = vertex_attrs.permute(2, 0, 1).reshape(n_chan, -1)
-    corner = attrs_t.index_select(1, ids.reshape(-1)).view(n_chan, 3, -1)
-    value = (corner * frags.bary_packed.T.to(corner.dtype)).sum(1)
+    flat_ids = ids.reshape(-1)
+    # One 1-D gather per channel (faster than a dim-1 gather of the (C, B*V) table).
+    corner = torch.stack([a.index_select(0, flat_ids) for a in attrs_t]).view(n_chan, 3, -1)
+
+    def weigh(weights: torch.Tensor) -> torch.Tensor:  # (C, 3, N) x (3, N) -> (C, N)
+        wt = weights.T.to(corner.dtype)
+        return corner[:, 0] * wt[0] + corner[:, 1] * wt[1] + corner[:, 2] * wt[2]
+
+    value = weigh(frags.bary_packed)
     if not derivatives:
         return value, None, None
-    ddx = (corner * frags.bary_dx_packed.T.to(corner.dtype)).sum(1)
-    ddy = (corner * frags.bary_dy_packed.T.to(corner.dtype)).sum(1)
-    return value, ddx, ddy
+    return value, weigh(frags.bary_dx_packed), weigh(frags.bary_dy_packed)
 
 
 def interpolate(
