@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import statistics
 import sys
 import time
@@ -24,7 +25,8 @@ import trimesh  # noqa: E402
 from benchmd import markdown_table, update_section  # noqa: E402
 
 import torchraster as tr  # noqa: E402
-from torchraster.raster import rasterize as raster_mod  # noqa: E402
+
+raster_mod = importlib.import_module("torchraster.raster.rasterize")
 
 
 def _median_time(fn, repeats: int) -> float:

@@ -296,7 +296,7 @@ def _fragment_pass(clip_pos, faces, keys, shape, derivatives) -> Fragments:
     # Visible (item, face) pairs, a table row each, and one reference pixel per row.
     slot = items * n_faces + face
     visible = torch.zeros(b * n_faces, dtype=torch.bool, device=keys.device)
-    visible[slot] = True
+    visible.index_fill_(0, slot, True)
     vis = visible.nonzero().squeeze(1)
     row_of = (torch.cumsum(visible, 0) - 1).index_select(0, slot)  # (N,) table row per pixel
     ref = torch.full((vis.numel(),), pixels.numel(), dtype=torch.int64, device=keys.device)
