@@ -35,6 +35,15 @@ import torch.nn.functional as F
 
 from torchraster._validate import check_tensor
 from torchraster.shading.brdf import MIN_ROUGHNESS, d_ggx, v_smith_ggx_correlated
+from torchraster.shading.lights import (  # one SH basis for ambient lights and IBL
+    SH_C0,
+    SH_C1,
+    SH_C2,
+    SH_C20,
+    SH_C22,
+    sh_basis,
+    sh_irradiance,
+)
 from torchraster.texture import (
     _pad,
     _sample_levels,
@@ -92,11 +101,7 @@ FIS_LOD_BIAS: float = 0.0
 MIN_LEVEL_HEIGHT: int = 32
 
 # Irradiance convolution factors A_l of the clamped cosine (Ramamoorthi & Hanrahan eq. 8).
-_A_L = (math.pi, 2.0 * math.pi / 3.0, math.pi / 4.0)
 # Real SH normalisation constants, bands 0..2.
-_C0, _C1 = 0.5 / math.sqrt(math.pi), math.sqrt(3.0 / (4.0 * math.pi))  # 0.282095, 0.488603
-_C2, _C3 = 0.5 * math.sqrt(15.0 / math.pi), 0.25 * math.sqrt(5.0 / math.pi)  # 1.092548, 0.315392
-_C4 = 0.25 * math.sqrt(15.0 / math.pi)  # 0.546274
 
 
 def _normalize(x: torch.Tensor) -> torch.Tensor:
@@ -133,30 +138,6 @@ def yaw_rotation(angle: float | torch.Tensor, *, dtype: torch.dtype | None = Non
 # ---------------------------------------------------------------------- spherical harmonics
 
 
-def sh_basis(d: torch.Tensor) -> torch.Tensor:
-    """The 9 real SH basis functions (bands 0-2) of directions ``(B, 3, ...)`` -> ``(B, 9, ...)``.
-
-    Band-2 terms are written as homogeneous quadratics (e.g. ``3z^2 - |d|^2``), so they
-    equal the usual forms for unit ``d`` and vanish for ``d = 0``.
-    """
-    x, y, z = d[:, 0], d[:, 1], d[:, 2]
-    r2 = x * x + y * y + z * z
-    return torch.stack(
-        (
-            torch.full_like(x, _C0),
-            _C1 * y,
-            _C1 * z,
-            _C1 * x,
-            _C2 * x * y,
-            _C2 * y * z,
-            _C3 * (3.0 * z * z - r2),
-            _C2 * x * z,
-            _C4 * (x * x - y * y),
-        ),
-        1,
-    )
-
-
 @lru_cache(maxsize=8)
 def _texel_sh_integrals(height: int, width: int) -> torch.Tensor:
     """``(9, H, W)`` float64: the exact integral of each SH basis function over each texel
@@ -183,15 +164,15 @@ def _texel_sh_integrals(height: int, width: int) -> torch.Tensor:
     one = torch.ones_like
     s2 = lambda t: sn(t) ** 2  # noqa: E731
     terms = [
-        _C0 * th(one) * ph(one),
-        _C1 * th(cs) * ph(one),  # y
-        _C1 * th(sn) * ph(lambda p: -cs(p)),  # z
-        _C1 * th(sn) * ph(sn),  # x
-        _C2 * th(lambda t: sn(t) * cs(t)) * ph(sn),  # xy
-        _C2 * th(lambda t: cs(t) * sn(t)) * ph(lambda p: -cs(p)),  # yz
-        _C3 * (3.0 * th(s2) * ph(lambda p: cs(p) ** 2) - th(one) * ph(one)),  # 3z^2 - 1
-        _C2 * th(s2) * ph(lambda p: -sn(p) * cs(p)),  # xz
-        _C4 * (th(s2) * ph(lambda p: sn(p) ** 2) - th(lambda t: cs(t) ** 2) * ph(one)),
+        SH_C0 * th(one) * ph(one),
+        SH_C1 * th(cs) * ph(one),  # y
+        SH_C1 * th(sn) * ph(lambda p: -cs(p)),  # z
+        SH_C1 * th(sn) * ph(sn),  # x
+        SH_C2 * th(lambda t: sn(t) * cs(t)) * ph(sn),  # xy
+        SH_C2 * th(lambda t: cs(t) * sn(t)) * ph(lambda p: -cs(p)),  # yz
+        SH_C20 * (3.0 * th(s2) * ph(lambda p: cs(p) ** 2) - th(one) * ph(one)),  # 3z^2 - 1
+        SH_C2 * th(s2) * ph(lambda p: -sn(p) * cs(p)),  # xz
+        SH_C22 * (th(s2) * ph(lambda p: sn(p) ** 2) - th(lambda t: cs(t) ** 2) * ph(one)),
     ]
     return torch.stack(terms, 0)
 
@@ -222,10 +203,7 @@ def irradiance_sh(sh: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
     """
     check_tensor("sh", sh, ("B", 9, 3), floating=True)
     check_tensor("n", n, ("B", 3, "H", "W"), floating=True)
-    a = sh.new_tensor([_A_L[0]] + [_A_L[1]] * 3 + [_A_L[2]] * 5).view(1, 9, 1)
-    basis = sh_basis(_normalize(n))  # (B, 9, H, W)
-    e = torch.einsum("bkc,bkhw->bchw", (sh * a).expand(n.shape[0], -1, -1), basis)
-    return e.clamp_min(0.0)
+    return sh_irradiance(sh.expand(n.shape[0], -1, -1), _normalize(n)).clamp_min(0.0)
 
 
 def irradiance_map(

@@ -248,12 +248,11 @@ def sh_basis(d: torch.Tensor) -> torch.Tensor:
     """Real SH basis Y_k(d), bands 0-2, for unit directions with xyz on dim -3.
 
     ``(..., 3, H, W) -> (..., 9, H, W)`` in the order Y00, Y1-1, Y10, Y11, Y2-2, Y2-1,
-    Y20, Y21, Y22 (Ramamoorthi & Hanrahan 2001) — the same order and layout as
-    ``torchraster.shading.ibl.sh_basis``, so ``ibl.sh_project`` output can be used as
-    ``Lights.ambient``.
+    Y20, Y21, Y22 (Ramamoorthi & Hanrahan 2001). Also the basis of image-based lighting
+    (``ibl.sh_project``), so its output can be used as ``Lights.ambient``.
     """
     x, y, z = d.unbind(dim=-3)
-    r2 = x * x + y * y + z * z  # 1 for unit d; makes Y20 vanish for d = 0 (as ibl.sh_basis)
+    r2 = x * x + y * y + z * z  # 1 for unit d; makes Y20 vanish for d = 0
     ys = [
         torch.full_like(x, SH_C0),
         SH_C1 * y,
