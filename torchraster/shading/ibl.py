@@ -100,9 +100,6 @@ FIS_LOD_BIAS: float = 0.0
 #: (22 degree texels) interpolate with ~2 % error.
 MIN_LEVEL_HEIGHT: int = 32
 
-# Irradiance convolution factors A_l of the clamped cosine (Ramamoorthi & Hanrahan eq. 8).
-# Real SH normalisation constants, bands 0..2.
-
 
 def _normalize(x: torch.Tensor) -> torch.Tensor:
     """Unit vectors along dim 1; vectors shorter than 1e-6 become 0 (finite gradient)."""
