@@ -4,6 +4,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from skimage import io as skio
 
 import torchraster as tr
@@ -93,3 +94,18 @@ def test_several_cameras_and_npy_outputs(tmp_path):
     assert "a/depth.npy" in names and "b/face_id.png" in names
     depth = np.load(tmp_path / "a" / "depth.npy")
     assert depth.shape == (1, 32, 32) and np.isfinite(depth).all() and depth.max() > 0
+
+
+def test_material_overrides_and_transform_apply(tmp_path):
+    from torchraster.pipeline import build_scene
+
+    text = (f"scene:\n  mesh: {SPOT}\n  transform:\n    translate: [1, 2, 3]\n    scale: 2\n"
+            "materials:\n  - base_color: [0.2, 0.4, 0.6]\n    metallic: 0.7\n    roughness: 0.3\n")
+    cfg = tr.parse_config(text)
+    scene = build_scene(cfg)
+    raw = tr.load_mesh(SPOT)
+    expected = raw.positions * 2 + torch.tensor([1.0, 2.0, 3.0])
+    assert torch.allclose(scene.positions, expected, atol=1e-5)
+    (mat,) = scene.materials
+    assert torch.allclose(mat.base_color_factor, torch.tensor([0.2, 0.4, 0.6, 1.0]))
+    assert mat.metallic_factor == 0.7 and mat.roughness_factor == 0.3

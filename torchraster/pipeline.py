@@ -15,7 +15,7 @@ import math
 import os
 import tempfile
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import kornia
@@ -26,6 +26,7 @@ from . import camera
 from .config import CameraConfig, ConfigError, RenderFile, TransformConfig
 from .hdr_io import read_hdr
 from .io import load_scene, load_texture
+from .material import Material
 from .mesh import flat as flat_mesh
 from .post.chain import PostChain, build_ssao
 from .renderer import Renderer, RenderScene
@@ -75,12 +76,11 @@ def build_scene(cfg: RenderFile) -> RenderScene:
                        materials)
 
 
-def _override(mat, cfg: RenderFile):
-    from dataclasses import replace
+def _override(mat: Material | None, cfg: RenderFile) -> Material | None:
+    """Apply the config's material overrides (in order) to one material."""
     for o in cfg.materials:
         if o.match != "*" and (mat is None or mat.name != o.match):
             continue
-        from .material import Material
         mat = mat if mat is not None else Material()
         changes = {}
         if o.base_color is not None:
