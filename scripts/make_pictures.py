@@ -5,7 +5,8 @@
 Writes: pbr_<asset>_env.png (image-based lighting, environment as background),
 pbr_<asset>_lights.png (point + spot + a dim ambient), gbuffer_<asset>.png (albedo,
 normal, roughness, metallic, AO, depth) for DamagedHelmet and MaterialsVariantsShoe, and
-pbr_overview.png (the four lit images side by side).
+pbr_overview.png (the four lit images side by side), and pbr_sphere_grid.png (metallic x
+roughness spheres under the environment, one rasterize call with 25 materials).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from pathlib import Path
 import kornia
 import numpy as np
 import torch
+import trimesh
 from skimage import io as skio
 
 import torchraster as tr
@@ -56,6 +58,33 @@ def _channel(img: torch.Tensor, name: str, mask: torch.Tensor) -> np.ndarray:
     return (img.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
 
 
+def sphere_grid(env: Environment, size: int) -> None:
+    """5 x 5 spheres, metallic 0 -> 1 (rows) x roughness 0 -> 1 (columns): one mesh, one
+    material per sphere (face_material), one rasterize call, IBL from the environment."""
+    ico = trimesh.creation.icosphere(subdivisions=4)
+    verts = torch.tensor(ico.vertices, dtype=torch.float32) * 0.42
+    faces = torch.tensor(ico.faces, dtype=torch.int64)
+    positions, all_faces, face_material, materials = [], [], [], []
+    for i, metallic in enumerate(torch.linspace(0, 1, 5).tolist()):
+        for j, roughness in enumerate(torch.linspace(0, 1, 5).tolist()):
+            k = len(materials)
+            positions.append(verts + torch.tensor([j - 2.0, 2.0 - i, 0.0]))
+            all_faces.append(faces + k * verts.shape[0])
+            face_material.append(torch.full((faces.shape[0],), k))
+            materials.append(tr.Material(base_color_factor=torch.tensor([0.9, 0.6, 0.3, 1.0]),
+                                         metallic_factor=metallic, roughness_factor=roughness))
+    pos = torch.cat(positions)
+    scene = tr.RenderScene(pos, torch.cat(all_faces), tr.vertex_normals(pos, torch.cat(
+        all_faces))[0], face_material=torch.cat(face_material), materials=materials)
+    view = tr.camera.look_at([0.0, 0.0, 9.0], [0.0, 0.0, 0.0])
+    proj = tr.camera.perspective(32.0, 1.0, 0.1)
+    with torch.no_grad():
+        out = tr.Renderer((size, size), shading="pbr", supersample=2,
+                          background=(0.02, 0.02, 0.03))(scene, view, proj, None, env)
+    image = out.image[0] * out.alpha[0] + (1 - out.alpha[0]) * 0.02
+    skio.imsave(OUT / "pbr_sphere_grid.png", _display(image), check_contrast=False)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=320)
@@ -72,6 +101,7 @@ def main() -> None:
          "color": [0.6, 0.8, 1.0]},
         {"type": "ambient", "intensity": 0.03},
     ])
+    sphere_grid(env, 2 * args.size)
     for name, (path, azimuth) in ASSETS.items():
         t = time.time()
         scene = tr.load_scene(DATA / path, max_texture_size=1024)
