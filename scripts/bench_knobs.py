@@ -13,30 +13,18 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import statistics
 import sys
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import torch  # noqa: E402
 import trimesh  # noqa: E402
-from benchmd import markdown_table, update_section  # noqa: E402
+from benchmd import markdown_table, median_time, update_section  # noqa: E402
 
 import torchraster as tr  # noqa: E402
 
 raster_mod = importlib.import_module("torchraster.raster.rasterize")
-
-
-def _median_time(fn, repeats: int) -> float:
-    fn()
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times)
 
 
 def _sphere_clip(subdiv: int, batch: int):
@@ -59,7 +47,7 @@ def tile_and_budget(repeats: int) -> str:
                 kw = dict(tile=tile, memory_budget=budget_mb * 2**20)
                 out = tr.rasterize(clip, faces, (res, res), **kw)
                 same = torch.equal(out.face_id, ref.face_id) and torch.equal(out.bary, ref.bary)
-                t = _median_time(lambda kw=kw, c=clip, f=faces, r=res: tr.rasterize(
+                t = median_time(lambda kw=kw, c=clip, f=faces, r=res: tr.rasterize(
                     c, f, (r, r), **kw), repeats)
                 default = (tile == raster_mod.DEFAULT_TILE
                            and budget_mb * 2**20 == raster_mod.DEFAULT_MEMORY_BUDGET)
@@ -84,7 +72,7 @@ def supersampling(repeats: int, size: int) -> str:
     rows = []
     for s in (1, 2, 3, 4, 6):
         err = float((render(s) - ref).abs().mean() / ref.mean()) * 100
-        t = _median_time(lambda s=s: render(s), repeats)
+        t = median_time(lambda s=s: render(s), repeats)
         rows.append([s, t * 1e3, err])
         print(rows[-1], flush=True)
     return markdown_table(["supersample", "render ms", "mean abs error vs 8x (%)"], rows)

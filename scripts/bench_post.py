@@ -34,7 +34,7 @@ import kornia  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 import torch.nn.functional as F  # noqa: E402
-from benchmd import markdown_table, update_section  # noqa: E402
+from benchmd import markdown_table, median_time, update_section  # noqa: E402
 
 from torchraster.post import (  # noqa: E402
     SSAO,
@@ -57,17 +57,6 @@ IMAGES = ROOT / "docs" / "images"
 ENVMAPS = Path("/work/shared/data/envmaps")
 if not ENVMAPS.is_dir():
     ENVMAPS = ROOT.parent / "shared" / "data" / "envmaps"
-
-
-def median_time(fn: Callable[[], object], reps: int) -> float:
-    """Median wall time (s) of ``reps`` calls after one warm-up call."""
-    fn()
-    ts = []
-    for _ in range(reps):
-        t = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t)
-    return statistics.median(ts)
 
 
 # ----------------------------------------------------------------------------- scenes

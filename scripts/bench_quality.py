@@ -31,7 +31,7 @@ import torch.nn.functional as F
 sys.path.insert(0, str(Path(__file__).parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmd import markdown_table, update_section  # noqa: E402
+from benchmd import markdown_table, median_time, update_section  # noqa: E402
 
 from torchraster.hdr_io import read_hdr  # noqa: E402
 from torchraster.shading import ibl  # noqa: E402
@@ -46,11 +46,6 @@ from torchraster.texture import (  # noqa: E402
 ROOT = Path(__file__).resolve().parent.parent
 IMAGES = ROOT / "docs" / "images"
 ENVMAPS = ROOT.parent / "shared" / "data" / "envmaps"
-
-
-def median_time(fn, repeats: int, warmup: bool = True) -> float:  # noqa: ANN001
-    """Median wall time of ``fn()`` in seconds over ``repeats`` runs (after one warm-up)."""
-    return timed(fn, repeats, warmup)[0]
 
 
 def timed(fn, repeats: int, warmup: bool = True):  # noqa: ANN001, ANN201
