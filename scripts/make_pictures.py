@@ -87,7 +87,7 @@ def sphere_grid(env: Environment, size: int) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--size", type=int, default=320)
+    ap.add_argument("--size", type=int, default=256)
     args = ap.parse_args()
     if not DATA.is_dir():
         print(f"{DATA} not found: nothing to do")
