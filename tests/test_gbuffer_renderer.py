@@ -220,3 +220,18 @@ def test_ssao_feeds_the_lighting_pass():
     assert "ssao" in occluded.plan and "ssao" not in plain.plan
     ratio = occluded.image.mean(1) / plain.image.mean(1).clamp(min=1e-6)
     assert ratio.max() <= 1.0 + 1e-5 and ratio.min() < 0.8  # only darker, clearly in the crease
+
+
+def test_plan_lists_exactly_the_computed_channels():
+    from torchraster.post import SSAO
+
+    scene = _sphere_scene(2)
+    view = camera.look_at([0.0, 0.0, 4.0], [0.0, 0.0, 0.0])
+    proj = camera.perspective(40.0, 1.0, 0.1)
+    ambient = lights_from_config([{"type": "ambient"}])
+    out = tr.Renderer((16, 16), shading="pbr", ssao=SSAO())(scene, view, proj, ambient)
+    gbuffer = next(p for p in out.plan if p.startswith("gbuffer "))
+    assert "depth" in gbuffer.split(" ")[1].split(",") and "ssao" in out.plan
+    out = tr.Renderer((16, 16), shading="headlight")(scene, view, proj)
+    gbuffer = next(p for p in out.plan if p.startswith("gbuffer "))
+    assert set(gbuffer.split(" ")[1].split(",")) == {"albedo", "mask", "normal", "position"}

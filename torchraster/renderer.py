@@ -151,6 +151,9 @@ class Renderer(nn.Module):
         needed = set(channels) | _SHADING_NEEDS[self.shading] | {"mask"}
         if self.shading == "pbr" and lights is None and environment is None:
             needed = set(channels) | {"albedo", "emissive", "mask"}
+        if self.ssao is not None and self.shading == "pbr" and (
+                lights is not None or environment is not None):
+            needed |= {"depth"}
         passes = [f"rasterize {self.resolution[0] * self.supersample}x"
                   f"{self.resolution[1] * self.supersample}"]
         passes.append("gbuffer " + ",".join(sorted(needed)))
@@ -161,8 +164,7 @@ class Renderer(nn.Module):
                     if group is not None:
                         count = getattr(group, "count", None)
                         passes.append(f"light {kind}" + (f" x{count}" if count else ""))
-            if self.ssao is not None and (lights is not None or environment is not None):
-                needed |= {"depth"}
+            if "depth" in needed and self.ssao is not None:
                 passes.append("ssao")
             if environment is not None:
                 passes.append("ibl")
