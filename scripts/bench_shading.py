@@ -82,13 +82,11 @@ def run_pass(g, lights, backward: bool, chunk: int | None = None):
 
     def fn():
         if backward:
-            out = shade(pos, n, albedo, metallic, rough, None, None, mask, cam, lights,
-                        light_chunk=chunk)
+            out = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=metallic, roughness=rough, mask=mask), camera_position=cam, lights=lights, light_chunk=chunk)
             out.sum().backward()
         else:
             with torch.no_grad():
-                shade(pos, n, albedo, metallic, rough, None, None, mask, cam, lights,
-                      light_chunk=chunk)
+                shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=metallic, roughness=rough, mask=mask), camera_position=cam, lights=lights, light_chunk=chunk)
 
     return fn
 
@@ -150,8 +148,7 @@ def pictures() -> None:
     albedo = torch.tensor([0.9, 0.55, 0.25]).view(1, 3, 1, 1).expand(b, 3, size, size)
     cam = torch.tensor([[0.0, 0.0, 6.0]] * b)
     lights = lights_from_config(SCENE_LIGHTS, batch=b)
-    img = shade(pos, n, albedo.contiguous(), m.contiguous(), r.contiguous(), None, None, mask,
-                cam, lights)
+    img = shade(GBuffer(position=pos, normal=n, albedo=albedo.contiguous(), metallic=m.contiguous(), roughness=r.contiguous(), mask=mask), camera_position=cam, lights=lights)
     labels = [(4, 2 + i * size, f"metal {mi}") for i, mi in enumerate(metals)]
     labels += [(4 + j * size, 3 * size - 12, f"rough {ri}") for j, ri in enumerate(roughs)]
     to_png(tile(img, len(metals), len(roughs)), IMAGES / "shading_sphere_grid.png", labels)
@@ -164,7 +161,7 @@ def pictures() -> None:
     zero = torch.zeros(1, 1, size, size)
     cam = torch.tensor([[0.0, 0.0, 6.0]])
     lights = lights_from_config([SCENE_LIGHTS[0], SCENE_LIGHTS[2]])
-    imgs = [shade(pos, n, albedo, zero, zero + 0.3, None, None, mask, cam, lights, model=name)
+    imgs = [shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=zero, roughness=zero + 0.3, mask=mask), camera_position=cam, lights=lights, model=name)
             for name in names]
     to_png(tile(torch.cat(imgs), 1, len(names)), IMAGES / "shading_models.png",
            [(4 + k * size, 2, name) for k, name in enumerate(names)])
@@ -196,8 +193,7 @@ def pictures() -> None:
         ("directional", [{"type": "directional", "direction": [-1.0, -1.0, -0.5],
                           "intensity": 2.0}]),
     ]
-    imgs = [shade(pos, n, albedo, zero, zero + 0.5, None, None, mask, cams,
-                  lights_from_config(cfg)) for _, cfg in setups]
+    imgs = [shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=zero, roughness=zero + 0.5, mask=mask), camera_position=cams, lights=lights_from_config(cfg)) for _, cfg in setups]
     to_png(tile(torch.cat(imgs), 1, 3), IMAGES / "shading_lights.png",
            [(4 + k * w, 2, name) for k, (name, _) in enumerate(setups)])
 
@@ -245,9 +241,8 @@ def main() -> None:
         chunk = max(1, LIGHT_CHUNK_ELEMENTS // (batch * size * size))
         pos, n, albedo, metallic, rough, mask, cam = g
         with torch.no_grad():
-            a = shade(pos, n, albedo, metallic, rough, None, None, mask, cam, lights,
-                      light_chunk=1)
-            c = shade(pos, n, albedo, metallic, rough, None, None, mask, cam, lights)
+            a = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=metallic, roughness=rough, mask=mask), camera_position=cam, lights=lights, light_chunk=1)
+            c = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=metallic, roughness=rough, mask=mask), camera_position=cam, lights=lights)
         diff = ((a - c).abs().max() / c.abs().max()).item()
         t_loop = timed(run_pass(g, lights, False, chunk=1), args.repeats)
         t_vec = timed(run_pass(g, lights, False), args.repeats)

@@ -43,8 +43,8 @@ def test_only_requested_channels_are_computed():
     view, proj = _camera()
     frags = tr.rasterize(camera.transform_points(pos, proj @ view), faces, (H, W))
     for request in [{"normal"}, {"depth", "mask"}, {"albedo"}, set()]:
-        out = geometry_pass(frags, request, pos, view, normals, uvs)
-        assert set(out) == request
+        out = geometry_pass(frags, request, positions=pos, view=view, normals=normals, uvs=uvs)
+        assert set(out.channels()) == request
 
 
 def test_required_inputs_follow_material_textures():
@@ -63,16 +63,17 @@ def test_position_depth_normal_match_ray_plane_intersection():
     pos, faces, uvs, normals = _quad(z)
     view, proj = _camera()
     frags = tr.rasterize(camera.transform_points(pos, proj @ view), faces, (H, W))
-    out = geometry_pass(frags, {"position", "depth", "normal", "mask"}, pos, view, normals, uvs)
+    out = geometry_pass(frags, {"position", "depth", "normal", "mask"}, positions=pos,
+                        view=view, normals=normals, uvs=uvs)
     hits, _ = _plane_hits(view, proj, z)
-    m = out["mask"][0, 0] > 0
+    m = out.mask[0, 0] > 0
     assert m.float().mean() > 0.5
-    err = (out["position"][0] - hits).norm(dim=0)[m]
+    err = (out.position[0] - hits).norm(dim=0)[m]
     assert err.max() < 1e-4 * 6
     # linear view depth = distance along the view axis
     z_view = (view[0, 2, :3, None, None] * hits).sum(0) + view[0, 2, 3]
-    assert (out["depth"][0, 0][m] + z_view[m]).abs().max() < 1e-4
-    assert torch.allclose(out["normal"][0][:, m], torch.tensor([0.0, 0.0, 1.0])[:, None], atol=1e-6)
+    assert (out.depth[0, 0][m] + z_view[m]).abs().max() < 1e-4
+    assert torch.allclose(out.normal[0][:, m], torch.tensor([0.0, 0.0, 1.0])[:, None], atol=1e-6)
 
 
 def test_textured_albedo_matches_analytic_uv():
@@ -86,14 +87,14 @@ def test_textured_albedo_matches_analytic_uv():
                        torch.zeros(n, n)])  # row 0 = top = v near 1
     mat = tr.Material(base_color_texture=tex)
     frags = tr.rasterize(camera.transform_points(pos, proj @ view), faces, (H, W))
-    out = geometry_pass(frags, {"albedo", "mask"}, pos, view, normals, uvs, materials=[mat],
-                        texture_filter="bilinear")
+    out = geometry_pass(frags, {"albedo", "mask"}, positions=pos, view=view, normals=normals,
+                        uvs=uvs, materials=[mat], texture_filter="bilinear")
     hits, _ = _plane_hits(view, proj, z)
     u = (hits[0] + size) / (2 * size)
     v = (hits[1] + size) / (2 * size)
-    inner = (out["mask"][0, 0] > 0) & (u > 0.02) & (u < 0.98) & (v > 0.02) & (v < 0.98)
-    assert (out["albedo"][0, 0][inner] - u[inner]).abs().max() < 1e-4
-    assert (out["albedo"][0, 1][inner] - v[inner]).abs().max() < 1e-4
+    inner = (out.mask[0, 0] > 0) & (u > 0.02) & (u < 0.98) & (v > 0.02) & (v < 0.98)
+    assert (out.albedo[0, 0][inner] - u[inner]).abs().max() < 1e-4
+    assert (out.albedo[0, 1][inner] - v[inner]).abs().max() < 1e-4
 
 
 def _sphere_scene(subdivisions=5):

@@ -13,6 +13,7 @@ from torchraster.shading import MODELS, Lights, lights_from_config, shade
 from torchraster.shading.lighting import dfg_lut, env_brdf
 from torchraster.shading.lights import DirectionalLights
 from torchraster.shading.models import Surface
+from torchraster.gbuffer import GBuffer
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_brdf import directional_albedo, heitz_v, walter_ggx  # noqa: E402
@@ -51,7 +52,7 @@ def test_lambert_sphere_matches_closed_form() -> None:
     lights = lights_from_config(
         [{"type": "directional", "direction": d.tolist(), "intensity": 3.0,
           "color": [1.0, 0.9, 0.8]}], dtype=F64)
-    out = shade(pos, n, albedo, zero, zero + 0.5, None, None, mask, cam(), lights, lambert)
+    out = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=zero, roughness=zero + 0.5, mask=mask), camera_position=cam(), lights=lights, model=lambert)
     l = (-d / d.norm()).view(1, 3, 1, 1)
     e = 3.0 * torch.tensor([1.0, 0.9, 0.8], dtype=F64).view(1, 3, 1, 1)
     ref = albedo / math.pi * e * (n * l).sum(1, keepdim=True).clamp_min(0) * mask
@@ -109,7 +110,7 @@ def test_cook_torrance_sphere_matches_reference() -> None:
     metallic = torch.rand(1, 1, 16, 16, generator=g, dtype=F64)
     rough = torch.rand(1, 1, 16, 16, generator=g, dtype=F64) * 0.9 + 0.1
     lights = lights_from_config(LIGHTS, dtype=F64)
-    out = shade(pos, n, albedo, metallic, rough, None, None, mask, cam(), lights)
+    out = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=metallic, roughness=rough, mask=mask), camera_position=cam(), lights=lights)
     checked = 0
     for i in range(16):
         for j in range(16):
@@ -143,8 +144,7 @@ def test_ambient_matches_brute_force_directional_albedo() -> None:
         n = n.T.reshape(1, 3, 1, len(thetas))
         pos = torch.zeros_like(n)
         one = torch.ones(1, 1, 1, len(thetas), dtype=F64)
-        out = shade(pos, n, alb * torch.ones_like(n), metal * one, rough * one, None, None,
-                    None, cam(), lights)
+        out = shade(GBuffer(position=pos, normal=n, albedo=alb * torch.ones_like(n), metallic=metal * one, roughness=rough * one), camera_position=cam(), lights=lights)
         for k, t in enumerate(thetas):
             ref = c * directional_albedo(t, rough, metal, alb, n_theta=300, n_phi=48)
             assert out[0, 0, 0, k].item() == pytest.approx(ref, rel=0.01), (rough, metal, t)
@@ -159,23 +159,23 @@ def test_ao_emissive_mask_and_empty_lights() -> None:
     direct = lights_from_config(LIGHTS[:1], dtype=F64)
     both = lights_from_config(LIGHTS[:1] + [{"type": "ambient", "color": [1, 1, 1]}], dtype=F64)
     ao0, ao1 = torch.zeros_like(m), torch.ones_like(m)
-    d_only = shade(pos, n, albedo, m, r, None, None, mask, cam(), direct)
-    torch.testing.assert_close(shade(pos, n, albedo, m, r, ao0, None, mask, cam(), direct), d_only)
-    torch.testing.assert_close(shade(pos, n, albedo, m, r, ao0, None, mask, cam(), both), d_only)
-    full = shade(pos, n, albedo, m, r, ao1, None, mask, cam(), both)
-    half = shade(pos, n, albedo, m, r, ao1 * 0.5, None, mask, cam(), both)
+    d_only = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=r, mask=mask), camera_position=cam(), lights=direct)
+    torch.testing.assert_close(shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=r, ao=ao0, mask=mask), camera_position=cam(), lights=direct), d_only)
+    torch.testing.assert_close(shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=r, ao=ao0, mask=mask), camera_position=cam(), lights=both), d_only)
+    full = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=r, ao=ao1, mask=mask), camera_position=cam(), lights=both)
+    half = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=r, ao=ao1 * 0.5, mask=mask), camera_position=cam(), lights=both)
     torch.testing.assert_close(half - d_only, 0.5 * (full - d_only))
     assert ((full - d_only)[mask.expand_as(full)] > 0).all()
-    with_e = shade(pos, n, albedo, m, r, None, emissive, mask, cam(), direct)
+    with_e = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=r, emissive=emissive, mask=mask), camera_position=cam(), lights=direct)
     torch.testing.assert_close(with_e, d_only + emissive * mask)
     # no lights at all: only emission; masked pixels stay 0 even if the G-buffer is NaN there
     bad = pos.clone()
     bad[~mask.expand_as(bad)] = math.nan
-    out = shade(bad, n, albedo, m, r, None, emissive, mask, cam(), Lights())
+    out = shade(GBuffer(position=bad, normal=n, albedo=albedo, metallic=m, roughness=r, emissive=emissive, mask=mask), camera_position=cam(), lights=Lights())
     torch.testing.assert_close(out, emissive * mask)
     empty = DirectionalLights(torch.zeros(1, 0, 3, dtype=F64), torch.zeros(1, 0, 3, dtype=F64),
                               torch.zeros(1, 0, dtype=F64))
-    out = shade(pos, n, albedo, m, r, None, None, mask, cam(), Lights(directional=empty))
+    out = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=r, mask=mask), camera_position=cam(), lights=Lights(directional=empty))
     assert (out == 0).all()
 
 
@@ -190,12 +190,11 @@ def test_ibl_hook() -> None:
         return a * 2.0
 
     ao = torch.full_like(m, 0.25)
-    out = shade(pos, n, albedo, m, m + 0.5, ao, None, mask, cam(), Lights(), ibl=ibl)
+    out = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=m + 0.5, ao=ao, mask=mask), camera_position=cam(), lights=Lights(), ibl=ibl)
     assert seen["unit"]
     torch.testing.assert_close(out, albedo * 2.0 * 0.25 * mask)
     with pytest.raises(ValueError, match="ibl"):
-        shade(pos, n, albedo, m, m, None, None, mask, cam(), Lights(),
-              ibl=lambda *a: torch.zeros(1, 3, 4, 4, dtype=F64))
+        shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=m, mask=mask), camera_position=cam(), lights=Lights(), ibl=lambda *a: torch.zeros(1, 3, 4, 4, dtype=F64))
 
 
 def test_chunking_and_checkpoint_agree() -> None:
@@ -207,8 +206,7 @@ def test_chunking_and_checkpoint_agree() -> None:
     for chunk, ckpt in [(None, None), (1, False), (2, True), (4, None)]:
         rough = (torch.rand(1, 1, 12, 12, generator=torch.Generator().manual_seed(8),
                             dtype=F64)).requires_grad_()
-        out = shade(pos, n, albedo, rough * 0.5, rough, None, None, mask, cam(), lights,
-                    light_chunk=chunk, checkpoint_chunks=ckpt)
+        out = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=rough * 0.5, roughness=rough, mask=mask), camera_position=cam(), lights=lights, light_chunk=chunk, checkpoint_chunks=ckpt)
         out.square().sum().backward()
         outs.append(out.detach())
         grads.append(rough.grad)
@@ -223,12 +221,10 @@ def test_models_by_name_finite(model: str) -> None:
     albedo = torch.full_like(n, 0.6)
     m = torch.zeros(1, 1, 16, 16)
     lights = lights_from_config(LIGHTS)
-    out = shade(pos, n, albedo, m, m + 0.3, None, None, mask, cam(dtype=torch.float32), lights,
-                model=model)
+    out = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=m + 0.3, mask=mask), camera_position=cam(dtype=torch.float32), lights=lights, model=model)
     assert torch.isfinite(out).all() and out.max() > 0
     # by name == by callable
-    same = shade(pos, n, albedo, m, m + 0.3, None, None, mask, cam(dtype=torch.float32),
-                 lights, model=MODELS[model])
+    same = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=m + 0.3, mask=mask), camera_position=cam(dtype=torch.float32), lights=lights, model=MODELS[model])
     torch.testing.assert_close(out, same)
 
 
@@ -253,7 +249,7 @@ def test_gradcheck_pass() -> None:
     ao = torch.full((1, 1, 3, 3), 0.7, dtype=F64)
 
     def fn(albedo, metal, rough, nrm):
-        return shade(pos, nrm, albedo, metal, rough, ao, None, None, cam(), lights)
+        return shade(GBuffer(position=pos, normal=nrm, albedo=albedo, metallic=metal, roughness=rough, ao=ao), camera_position=cam(), lights=lights)
 
     args = tuple(t.clone().requires_grad_() for t in (albedo, metal, rough, nrm))
     assert torch.autograd.gradcheck(fn, args)
@@ -275,7 +271,9 @@ def test_hostile_gbuffer_finite() -> None:
     ])
     args = [t.clone().requires_grad_() for t in (pos, nrm, torch.full_like(pos, 0.5),
                                                  torch.full_like(rough, 0.5), rough)]
-    out = shade(*args, None, None, None, torch.tensor([[0.0, 0, 5]]), lights)
+    gb = GBuffer(**dict(zip(["position", "normal", "albedo", "metallic", "roughness"], args,
+                            strict=True)))
+    out = shade(gb, camera_position=torch.tensor([[0.0, 0, 5]]), lights=lights)
     assert torch.isfinite(out).all()
     out.sum().backward()
     for t in args:
@@ -289,9 +287,11 @@ def test_low_precision_pass(dtype: torch.dtype) -> None:
     m = torch.linspace(0, 1, 24).view(1, 1, 1, 24).expand(1, 1, 24, 24).contiguous()
     r = torch.linspace(0, 1, 24).view(1, 1, 24, 1).expand(1, 1, 24, 24).contiguous()
     lights = lights_from_config(LIGHTS + [{"type": "ambient", "color": [0.2, 0.2, 0.2]}])
-    ref = shade(pos, n, albedo, m, r, None, None, mask, cam(dtype=torch.float32), lights)
-    low = shade(*(t.to(dtype) for t in (pos, n, albedo, m, r)), None, None, mask,
-                cam(dtype=dtype), lights)
+    ref = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=r, mask=mask), camera_position=cam(dtype=torch.float32), lights=lights)
+    low16 = [t.to(dtype) for t in (pos, n, albedo, m, r)]
+    low = shade(GBuffer(position=low16[0], normal=low16[1], albedo=low16[2], metallic=low16[3],
+                        roughness=low16[4], mask=mask),
+                camera_position=cam(dtype=dtype), lights=lights)
     assert low.dtype == dtype and torch.isfinite(low).all()
     err = (low.float() - ref).abs() / ref.abs().clamp_min(0.05)
     assert err.median().item() < 0.02  # inputs rounded to 8 (bf16) / 11 (fp16) bits
@@ -300,24 +300,41 @@ def test_low_precision_pass(dtype: torch.dtype) -> None:
 def test_bad_inputs() -> None:
     pos, n, mask = sphere(4, 4)
     a, m = torch.full_like(n, 0.5), torch.zeros(1, 1, 4, 4, dtype=F64)
-    ok = (pos, n, a, m, m, None, None, mask, cam(), Lights())
+    gb = GBuffer(position=pos, normal=n, albedo=a, metallic=m, roughness=m, mask=mask)
     with pytest.raises(ValueError, match="albedo"):
-        shade(pos, n, a[:, :2], m, m, None, None, mask, cam(), Lights())
+        GBuffer(position=pos, normal=n, albedo=a[:, :2], metallic=m, roughness=m)
     with pytest.raises(ValueError, match="roughness"):
-        shade(pos, n, a, m, m[..., :3], None, None, mask, cam(), Lights())
+        GBuffer(position=pos, normal=n, albedo=a, metallic=m, roughness=m[..., :3])
+    with pytest.raises(ValueError, match="metallic"):  # needs every channel it reads
+        shade(GBuffer(position=pos, normal=n, albedo=a, roughness=m), camera_position=cam())
+    with pytest.raises(TypeError, match="gbuffer"):
+        shade({"position": pos}, camera_position=cam())
     with pytest.raises(ValueError, match="camera_position"):
-        shade(*ok[:8], torch.zeros(1, 4, dtype=F64), Lights())
+        shade(gb, camera_position=torch.zeros(1, 4, dtype=F64), lights=Lights())
     with pytest.raises(TypeError, match="lights"):
-        shade(*ok[:9], [{"type": "ambient"}])
+        shade(gb, camera_position=cam(), lights=[{"type": "ambient"}])
     with pytest.raises(ValueError, match="batch size"):
-        shade(*ok[:9], lights_from_config(LIGHTS[:1], batch=2, dtype=F64))
+        shade(gb, camera_position=cam(), lights=lights_from_config(LIGHTS[:1], batch=3,
+                                                                   dtype=F64))
     with pytest.raises(ValueError, match="model"):
-        shade(*ok, model="phong")
+        shade(gb, camera_position=cam(), model="phong")
     with pytest.raises(ValueError, match="model"):
-        shade(*ok[:9], lights_from_config(LIGHTS[:1], dtype=F64),
+        shade(gb, camera_position=cam(), lights=lights_from_config(LIGHTS[:1], dtype=F64),
               model=lambda n, v, l, s: torch.zeros(1, 3, 4, 4))
     with pytest.raises(TypeError, match="metallic"):
-        shade(pos, n, a, m.long(), m, None, None, mask, cam(), Lights())
+        GBuffer(position=pos, normal=n, albedo=a, metallic=m.long(), roughness=m)
+    with pytest.raises(TypeError):  # keyword-only after the G-buffer
+        shade(gb, cam(), Lights())
+
+
+def test_lights_of_batch_one_broadcast() -> None:
+    pos, n, mask = sphere(8, 8, b=2)
+    a, m = torch.full_like(n, 0.5), torch.zeros(2, 1, 8, 8, dtype=F64)
+    gb = GBuffer(position=pos, normal=n, albedo=a, metallic=m, roughness=m + 0.5, mask=mask)
+    eye = cam().expand(2, 3)
+    shared = shade(gb, camera_position=eye, lights=lights_from_config(LIGHTS, dtype=F64))
+    full = shade(gb, camera_position=eye, lights=lights_from_config(LIGHTS, batch=2, dtype=F64))
+    torch.testing.assert_close(shared, full, rtol=0, atol=0)
 
 
 def test_env_brdf_table_limits() -> None:

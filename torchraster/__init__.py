@@ -1,26 +1,41 @@
 """torchraster: a differentiable binning rasterizer and PBR renderer in batched PyTorch ops.
 
-Public contract (see DESIGN.md): :func:`rasterize` and :func:`interpolate`. The rest:
-cameras (:mod:`torchraster.camera`), meshes and files (:mod:`~torchraster.mesh`,
-:mod:`~torchraster.io`), materials, textures, the deferred :class:`Renderer`, lights and
-image-based lighting (:mod:`torchraster.shading`), post-processing
-(:mod:`torchraster.post`) and YAML render configs (:func:`load_config`,
-:func:`render_to_files`).
+The contract and the layers are described in ``docs/design.md``. In data-flow order:
+
+* cameras: :mod:`torchraster.camera` (``look_at``, ``orbit``, ``perspective``, ...);
+* geometry and files: :class:`Mesh`, :func:`load_mesh`, :func:`load_scene`,
+  :class:`RenderScene`, :class:`Material`, :func:`read_hdr`;
+* visibility: :func:`rasterize` -> :class:`Fragments`, :func:`interpolate`;
+* surfaces: :func:`geometry_pass` -> :class:`GBuffer`;
+* light: :class:`Lights` (:class:`DirectionalLights`, :class:`PointLights`,
+  :class:`SpotLights`, ambient SH from :func:`sh_from_color`), :class:`Environment`,
+  :func:`shade`;
+* the whole frame: :class:`Renderer` -> :class:`RenderOutput`;
+* post-processing: :mod:`torchraster.post`; YAML configs: :func:`load_config`,
+  :func:`render_to_files`.
 """
 
 from . import camera, post, shading
 from .config import ConfigError, load_config, parse_config
-from .io import MeshFileError, load_mesh, load_scene, load_spot
+from .gbuffer import CHANNELS, GBuffer, geometry_pass
+from .hdr_io import read_hdr
+from .io import MeshFileError, Scene, load_mesh, load_scene, load_spot
 from .material import Material
 from .mesh import Mesh, pack_meshes, vertex_normals
 from .pipeline import render_config, render_to_files
 from .raster import Fragments, interpolate, rasterize
-from .renderer import Renderer, RenderOutput, RenderScene
+from .renderer import NotImplementedWarning, Renderer, RenderOutput, RenderPlan
+from .scene import RenderScene
+from .shading.ibl import Environment
+from .shading.lighting import shade
+from .shading.lights import DirectionalLights, Lights, PointLights, SpotLights, sh_from_color
 
 __all__ = [
-    "ConfigError", "Fragments", "Material", "Mesh", "MeshFileError", "RenderOutput",
-    "RenderScene", "Renderer", "camera", "interpolate", "load_config", "load_mesh",
-    "load_scene", "load_spot", "pack_meshes", "parse_config", "post", "rasterize",
-    "render_config", "render_to_files", "shading", "vertex_normals",
+    "CHANNELS", "ConfigError", "DirectionalLights", "Environment", "Fragments", "GBuffer",
+    "Lights", "Material", "Mesh", "MeshFileError", "NotImplementedWarning", "PointLights",
+    "RenderOutput", "RenderPlan", "RenderScene", "Renderer", "Scene", "SpotLights", "camera",
+    "geometry_pass", "interpolate", "load_config", "load_mesh", "load_scene", "load_spot",
+    "pack_meshes", "parse_config", "post", "rasterize", "read_hdr", "render_config",
+    "render_to_files", "sh_from_color", "shade", "shading", "vertex_normals",
 ]
 __version__ = "0.1.0"

@@ -1,9 +1,10 @@
 """Deferred geometry pass: only the G-buffer channels that later passes ask for.
 
 Everything is computed on the covered pixels only (packed, ``(C, N)``), then scattered into
-``(B, C, H, W)`` images. Each channel is computed only if requested, and inputs a channel
-needs (UVs, tangents, textures) are interpolated or sampled only if some requested channel
-needs them; :func:`required_inputs` states those dependencies and is tested.
+``(B, C, H, W)`` images held by a :class:`GBuffer`. Each channel is computed only if
+requested, and inputs a channel needs (UVs, tangents, textures) are interpolated or sampled
+only if some requested channel needs them; :func:`required_inputs` states those
+dependencies and is tested.
 
 Channels (0 where nothing is covered unless said otherwise):
 
@@ -27,20 +28,103 @@ uv         (B, 2, H, W) texture coordinates
 
 from __future__ import annotations
 
+import dataclasses
+import weakref
+from collections import OrderedDict
 from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 
 import torch
 
+from ._validate import check_tensor
 from .material import Material
+from .numerics import safe_normalize
 from .raster import Fragments, interpolate_packed, to_image
 from .texture import MipTexture
 
-CHANNELS = ("depth", "position", "normal", "albedo", "alpha", "metallic", "roughness", "ao",
-            "emissive", "mask", "face_id", "uv")
+#: Channel name -> number of image channels C.
+CHANNEL_SIZES: dict[str, int] = {
+    "depth": 1, "position": 3, "normal": 3, "albedo": 3, "alpha": 1, "metallic": 1,
+    "roughness": 1, "ao": 1, "emissive": 3, "mask": 1, "face_id": 1, "uv": 2,
+}
+CHANNELS = tuple(CHANNEL_SIZES)
 _MATERIAL_CHANNELS = {"albedo", "alpha", "metallic", "roughness", "ao", "emissive", "normal"}
 _SLOTS = {"albedo": "base_color", "alpha": "base_color", "metallic": "metallic_roughness",
           "roughness": "metallic_roughness", "ao": "occlusion", "emissive": "emissive",
           "normal": "normal"}
+
+
+@dataclass
+class GBuffer:
+    """The per-pixel surface data of a frame: one ``(B, C, H, W)`` image per channel.
+
+    Every channel is optional (None = not computed); the module table lists their shapes and
+    meaning. All present channels share B, H and W (checked), so a G-buffer can be built by
+    hand (e.g. analytic test scenes) as well as by :func:`geometry_pass`. Pass it to
+    :func:`torchraster.shading.shade` by name: channels are fields, so ``metallic`` and
+    ``roughness`` cannot be swapped by position.
+
+    Example:
+        >>> gb = GBuffer(albedo=torch.ones(1, 3, 2, 2), mask=torch.ones(1, 1, 2, 2))
+        >>> gb.channels()
+        ['albedo', 'mask']
+    """
+
+    depth: torch.Tensor | None = None
+    position: torch.Tensor | None = None
+    normal: torch.Tensor | None = None
+    albedo: torch.Tensor | None = None
+    alpha: torch.Tensor | None = None
+    metallic: torch.Tensor | None = None
+    roughness: torch.Tensor | None = None
+    ao: torch.Tensor | None = None
+    emissive: torch.Tensor | None = None
+    mask: torch.Tensor | None = None
+    face_id: torch.Tensor | None = None
+    uv: torch.Tensor | None = None
+
+    def __post_init__(self) -> None:
+        size = None
+        for name in self.channels():
+            value = getattr(self, name)
+            check_tensor(f"GBuffer.{name}", value, ("B", CHANNEL_SIZES[name], "H", "W"),
+                         floating=name not in ("face_id", "mask"))
+            bhw = (value.shape[0], value.shape[2], value.shape[3])
+            if size is None:
+                size, first = bhw, name
+            elif bhw != size:
+                raise ValueError(f"GBuffer.{name}: (B, H, W) = {bhw} differs from "
+                                 f"GBuffer.{first}'s {size}")
+
+    def channels(self) -> list[str]:
+        """Names of the channels present, in table order."""
+        return [name for name in CHANNELS if getattr(self, name) is not None]
+
+    def require(self, *names: str, by: str) -> None:
+        """Raise a ValueError naming the missing channels that ``by`` needs."""
+        missing = [n for n in names if getattr(self, n) is None]
+        if missing:
+            raise ValueError(f"{by}: needs G-buffer channel(s) {missing}; the GBuffer has "
+                             f"{self.channels()}")
+
+    def as_dict(self) -> dict[str, torch.Tensor]:
+        """{channel: image} of the channels present."""
+        return {name: getattr(self, name) for name in self.channels()}
+
+    def replace(self, **channels: torch.Tensor | None) -> GBuffer:
+        """A copy with some channels replaced (checked like the constructor)."""
+        return dataclasses.replace(self, **channels)
+
+    def downsample(self, factor: int) -> GBuffer:
+        """Box-filter float channels by ``factor`` (integer channels take the top-left
+        sample of each block): ``(B, C, s*H, s*W) -> (B, C, H, W)``."""
+        if factor == 1:
+            return self
+        out = {}
+        for name, v in self.as_dict().items():
+            out[name] = (v[:, :, ::factor, ::factor] if not v.is_floating_point()
+                         else torch.nn.functional.avg_pool2d(v, factor))
+        return GBuffer(**out)
 
 
 def check_channels(channels: Iterable[str]) -> set[str]:
@@ -72,9 +156,54 @@ def required_inputs(channels: Iterable[str], materials: Sequence[Material | None
     return need
 
 
+class MipCache:
+    """Mip pyramids of constant textures kept across frames, least recently used first out.
+
+    Keyed by the texture tensor's identity and version counter (an in-place edit of the
+    texture invalidates its entry), the dtype and the device; an entry holds only a weak
+    reference to the texture, so a texture that is freed drops out at the next lookup.
+    Bounded by ``max_bytes`` of pyramid data. Textures that require grad are never cached
+    (their pyramid must be rebuilt in every graph).
+
+    Args:
+        max_bytes: largest total size of the cached pyramids (default 512 MiB).
+    """
+
+    def __init__(self, max_bytes: int = 512 * 2**20) -> None:
+        self.max_bytes = int(max_bytes)
+        self._entries: OrderedDict[tuple, tuple] = OrderedDict()
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the cached pyramids."""
+        return sum(e[2] for e in self._entries.values())
+
+    def get(self, raw: torch.Tensor, build, dtype: torch.dtype, device: torch.device):
+        """The cached ``build()`` result for texture ``raw`` (built and stored on a miss)."""
+        if raw.requires_grad:
+            return build()
+        self._entries = OrderedDict((k, e) for k, e in self._entries.items()
+                                    if e[0]() is not None)  # drop freed textures
+        key = (id(raw), raw._version, dtype, device)
+        entry = self._entries.get(key)
+        if entry is not None and entry[0]() is raw:
+            self._entries.move_to_end(key)
+            return entry[1]
+        value = build()
+        size = sum(t.numel() * t.element_size() for t in getattr(value, "levels", []))
+        self._entries[key] = (weakref.ref(raw), value, size)
+        while self.nbytes > self.max_bytes and len(self._entries) > 1:
+            self._entries.popitem(last=False)
+        return value
+
+
 def geometry_pass(
     frags: Fragments,
     channels: Iterable[str],
+    *,
     positions: torch.Tensor,
     view: torch.Tensor,
     normals: torch.Tensor | None = None,
@@ -83,29 +212,39 @@ def geometry_pass(
     face_material: torch.Tensor | None = None,
     materials: Sequence[Material | None] = (),
     texture_filter: str = "trilinear",
-    texture_cache: dict | None = None,
-) -> dict[str, torch.Tensor]:
+    mip_cache: MipCache | None = None,
+) -> GBuffer:
     """Compute the requested G-buffer channels (see the module table).
 
-    frags: from ``rasterize(..., derivatives=True)`` when textures are sampled trilinearly.
-    positions: (B, V, 3) or (V, 3) world positions; view: (B, 4, 4) world -> view.
-    normals: (B, V, 3) or (V, 3) vertex normals (None: flat face normals are not available
-    here, pass ``mesh.vertex_normals``); uvs: (V, 2) / (B, V, 2); tangents: (V, 4) / (B, V, 4).
-    face_material: (F,) int64 index into ``materials`` (None: material 0 for every face).
-    texture_cache: dict reused across calls to keep mip pyramids of constant textures.
-    Returns {channel: (B, C, H, W)} for exactly the requested channels.
+    Args:
+        frags: from ``rasterize(..., derivatives=True)`` when textures are sampled
+            trilinearly.
+        channels: names from :data:`CHANNELS`.
+        positions: ``(B, V, 3)`` or ``(V, 3)`` world positions.
+        view: ``(B, 4, 4)`` world -> view matrices.
+        normals: ``(B, V, 3)`` or ``(V, 3)`` vertex normals (required for ``normal``).
+        uvs: ``(V, 2)`` or ``(B, V, 2)`` texture coordinates.
+        tangents: ``(V, 4)`` or ``(B, V, 4)`` (xyz, handedness) for normal maps.
+        face_material: ``(F,)`` int64 index into ``materials`` (None: material 0).
+        materials: the materials (None entries = glTF default material).
+        texture_filter: ``"trilinear" | "bilinear" | "nearest"``.
+        mip_cache: a :class:`MipCache` reused across calls for constant textures.
+
+    Returns:
+        A :class:`GBuffer` holding exactly the requested channels, each ``(B, C, H, W)``.
     """
     channels = check_channels(channels)
     need = required_inputs(channels, materials)
     out: dict[str, torch.Tensor] = {}
     dtype = positions.dtype
+    device = frags.pixels.device
     n = frags.pixels.numel()
     if "mask" in channels:
         out["mask"] = frags.mask.to(dtype)
     if "face_id" in channels:
         out["face_id"] = frags.face_id.unsqueeze(1)
     if not channels - {"mask", "face_id"}:
-        return out
+        return GBuffer(**out)
 
     pos = interpolate_packed(positions, frags)[0] if "position" in need else None  # (3, N)
     if "position" in channels:
@@ -138,22 +277,22 @@ def geometry_pass(
         mat = mats[m]
         if mat is None or getattr(mat, slot + "_texture") is None:
             return None
-        key = (id(mat), slot, dtype)
         raw = getattr(mat, slot + "_texture")
-        # Cache the mip pyramid of constant textures only: a texture being optimised needs a
-        # fresh pyramid (and graph) every call.
-        cache = texture_cache if texture_cache is not None and not raw.requires_grad else {}
-        entry = cache.get(key)
-        if entry is None or entry[0] is not raw:
-            tex = mat.texture(slot, dtype=dtype, device=frags.pixels.device)
-            entry = cache[key] = (raw, MipTexture(tex[None], address="wrap"))
+
+        def build() -> MipTexture:
+            tex = mat.texture(slot, dtype=dtype, device=device)
+            if mip_cache is not None and tex.data_ptr() == raw.data_ptr():
+                tex = tex.clone()  # a cached pyramid must not keep the texture alive
+            return MipTexture(tex[None], address="wrap")
+
+        mip = mip_cache.get(raw, build, dtype, device) if mip_cache is not None else build()
         grid = uv.index_select(1, sel)[None, :, None, :]  # (1, 2, 1, n_sel)
         if duv_dx is not None and texture_filter == "trilinear":
             ddx = duv_dx.index_select(1, sel)[None, :, None, :]
             ddy = duv_dy.index_select(1, sel)[None, :, None, :]
-            val = entry[1].sample(grid, ddx, ddy, filter="trilinear")
+            val = mip.sample(grid, ddx, ddy, filter="trilinear")
         else:
-            val = entry[1].sample(grid, filter="bilinear" if texture_filter != "nearest"
+            val = mip.sample(grid, filter="bilinear" if texture_filter != "nearest"
                                   else "nearest")
         return val[0, :, 0]
 
@@ -183,18 +322,11 @@ def geometry_pass(
         if "tangent" in need and tangents is not None:
             tan = interpolate_packed(tangents.to(dtype), frags)[0]  # (4, N)
             nrm = _apply_normal_maps(nrm, tan, mats, mat_index, sample)
-        nrm = _normalize(nrm)
+        nrm = safe_normalize(nrm, dim=0)
         if frags.front_facing is not None:  # back faces are seen from behind: flip
             nrm = torch.where(frags.front_facing[None], nrm, -nrm)
         out["normal"] = to_image(nrm, frags)
-    return out
-
-
-def _normalize(v: torch.Tensor, dim: int = 0) -> torch.Tensor:
-    """Unit vectors along ``dim``; zero vectors stay zero with finite gradients."""
-    sq = (v * v).sum(dim, keepdim=True)
-    ok = sq > 0
-    return torch.where(ok, v * torch.rsqrt(torch.where(ok, sq, torch.ones_like(sq))), v * 0)
+    return GBuffer(**out)
 
 
 def _factor(value, like: torch.Tensor) -> torch.Tensor:
@@ -241,8 +373,9 @@ def _apply_normal_maps(nrm, tan, mats, mat_index, sample) -> torch.Tensor:
     glTF: n' = normalize(T x + B y + N z) with (x, y, z) = (2 tex - 1) * (scale, scale, 1)
     and B = w (N x T) (w = tangent handedness).
     """
-    n_geo = _normalize(nrm)
-    t = _normalize(tan[:3] - (tan[:3] * n_geo).sum(0, keepdim=True) * n_geo)  # Gram-Schmidt
+    n_geo = safe_normalize(nrm, dim=0)
+    # Gram-Schmidt: the tangent made orthogonal to the interpolated normal
+    t = safe_normalize(tan[:3] - (tan[:3] * n_geo).sum(0, keepdim=True) * n_geo, dim=0)
     bit = torch.linalg.cross(n_geo, t, dim=0) * torch.where(tan[3:4] < 0, -1.0, 1.0)
     out = nrm
     for m, mat in enumerate(mats):
@@ -279,4 +412,4 @@ def decode_octahedral(code: torch.Tensor) -> torch.Tensor:
     """Inverse of :func:`encode_octahedral`: (B, 2, H, W) -> unit normals (B, 3, H, W)."""
     z = 1 - code.abs().sum(1, keepdim=True)
     xy = torch.where(z < 0, (1 - code.flip(1).abs()) * _sign_not_zero(code), code)
-    return _normalize(torch.cat([xy, z], dim=1), dim=1)
+    return safe_normalize(torch.cat([xy, z], dim=1), dim=1)

@@ -412,6 +412,7 @@ def material_from_trimesh(
             metallic_factor=0.0 if metal is None else min(max(metal, 0.0), 1.0),
             roughness_factor=min(max(rough, 0.0), 1.0),
             alpha_mode="BLEND" if alpha < 1.0 else "OPAQUE",
+            double_sided=True,  # OBJ/MTL has no sidedness: draw both sides, like its viewers
         )
 
     raise TypeError(

@@ -1,14 +1,16 @@
-"""The renderer module: plans the passes a scene needs, runs only those, and returns images,
-G-buffer channels and the plan it ran.
+"""The renderer: one planning step decides the passes a scene needs, ``forward`` runs them.
 
-    scene = tr.RenderScene.from_mesh(tr.io.load_spot())
     renderer = tr.Renderer((512, 512), shading="pbr")
-    out = renderer(scene, view, proj, lights=lights, environment=env)
+    out = renderer(tr.load_spot(), view, proj, lights=lights, environment=env)
     out.image  # (B, 3, H, W) linear HDR radiance;  out.alpha (B, 1, H, W);  out.plan
 
-Passes: rasterize -> geometry (G-buffer channels that shading or the caller read) ->
-lighting (only the light types present; image-based lighting only with an environment) ->
-background. Shading models: ``"pbr"`` (Cook-Torrance with the given lights / environment),
+Data flow (each arrow a pass that runs only when the plan says so)::
+
+    scene --transform--> clip --rasterize--> Fragments --geometry_pass--> GBuffer
+      GBuffer (+ SSAO) --shade / headlight / unlit--> radiance --+ background--> image
+      (supersampled: --box filter--> image, alpha, G-buffer channels)
+
+Shading models: ``"pbr"`` (Cook-Torrance with the given lights / environment),
 ``"headlight"`` (Lambert lit from the camera, E = pi, so a white surface facing the camera
 is 1.0; needs no lights), ``"unlit"`` (albedo + emissive). Post-processing is a separate
 ``torchraster.post.PostChain`` applied by the caller (the CLI does).
@@ -17,18 +19,20 @@ is 1.0; needs no lights), ``"unlit"`` (albedo + emissive). Post-processing is a 
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+import warnings
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from ._validate import check_resolution, check_tensor
-from .gbuffer import CHANNELS, _normalize, check_channels, geometry_pass
-from .material import Material
-from .mesh import Mesh, transform_points, vertex_normals
+from .gbuffer import CHANNELS, GBuffer, MipCache, check_channels, geometry_pass
+from .mesh import transform_points, vertex_normals
+from .numerics import safe_normalize
 from .raster import rasterize
+from .scene import RenderScene, as_render_scene
 from .shading.ibl import Environment, shade_ibl
 from .shading.lighting import shade
 from .shading.lights import Lights
@@ -36,55 +40,117 @@ from .shading.lights import Lights
 log = logging.getLogger("torchraster")
 
 SHADING = ("pbr", "headlight", "unlit")
+TEXTURE_FILTERS = ("trilinear", "bilinear", "nearest")
 _SHADING_NEEDS = {
     "pbr": {"position", "normal", "albedo", "metallic", "roughness", "ao", "emissive", "mask"},
     "headlight": {"position", "normal", "albedo", "mask"},
     "unlit": {"albedo", "emissive", "mask"},
 }
+_TEXTURE_SLOTS = ("base_color_texture", "metallic_roughness_texture", "normal_texture",
+                  "occlusion_texture", "emissive_texture")
 
 
-@dataclass
-class RenderScene:
-    """Scene tensors. positions (B, V, 3) or (V, 3) world space; faces (F, 3) int64;
-    normals like positions (None: smooth normals are computed); uvs (V, 2) or (B, V, 2);
-    tangents (V, 4) or (B, V, 4); face_material (F,) int64 into ``materials``."""
+class NotImplementedWarning(UserWarning):
+    """An input asks for a feature that is not implemented yet and is rendered without it
+    (e.g. glTF ``alphaMode: BLEND``). Filter with ``warnings.simplefilter``."""
 
-    positions: torch.Tensor
-    faces: torch.Tensor
-    normals: torch.Tensor | None = None
-    uvs: torch.Tensor | None = None
-    tangents: torch.Tensor | None = None
-    face_material: torch.Tensor | None = None
-    materials: list[Material | None] = field(default_factory=list)
 
-    @classmethod
-    def from_mesh(cls, mesh: Mesh, face_material: torch.Tensor | None = None,
-                  materials: Sequence[Material | None] | None = None) -> RenderScene:
-        """From a :class:`~torchraster.mesh.Mesh` (e.g. ``io.load_mesh`` or ``Scene.flatten``)."""
-        mats = list(materials) if materials is not None else [mesh.material]
-        return cls(mesh.positions, mesh.faces, mesh.normals, mesh.uvs, mesh.tangents,
-                   face_material, mats)
+@dataclass(frozen=True)
+class RenderPlan:
+    """The decisions of one render call, made once by :meth:`Renderer.plan` and executed by
+    :meth:`Renderer.forward` (so the reported plan is what ran).
+
+    Attributes:
+        resolution: ``(H, W)`` rasterized (the output resolution times ``supersample``).
+        supersample: box-filter factor applied at the end (1 = none).
+        channels: the G-buffer channels computed.
+        requested: the channels the caller asked for (returned in ``RenderOutput.gbuffer``).
+        shading: ``"pbr"``, ``"headlight"`` or ``"unlit"`` (``"pbr"`` without lights and
+            environment is planned as ``"unlit"``).
+        lights: ``(kind, count)`` of each light type present (count None for ambient).
+        ssao: SSAO multiplies the AO before lighting.
+        ibl: image-based lighting from the environment.
+        background: ``"environment"``, ``"colour"`` or ``"none"``.
+        cull: back faces dropped: ``"none"``, ``"all"`` (``cull_backfaces=True``) or
+            ``"single-sided"`` (faces of materials with ``double_sided=False``).
+        derivatives: screen-space UV derivatives are computed (trilinear texturing).
+
+    Iterating a plan yields its human-readable :attr:`steps`.
+    """
+
+    resolution: tuple[int, int]
+    supersample: int
+    channels: frozenset[str]
+    requested: frozenset[str]
+    shading: str
+    lights: tuple[tuple[str, int | None], ...]
+    ssao: bool
+    ibl: bool
+    background: str
+    cull: str
+    derivatives: bool
+
+    @property
+    def steps(self) -> list[str]:
+        """The passes in order, e.g. ``["rasterize 64x64", "gbuffer albedo,mask", ...]``."""
+        cull = "" if self.cull == "none" else f" (cull {self.cull} back faces)"
+        steps = [f"rasterize {self.resolution[0]}x{self.resolution[1]}{cull}",
+                 "gbuffer " + ",".join(sorted(self.channels))]
+        if self.shading == "pbr":
+            steps += [f"light {kind}" + (f" x{n}" if n else "") for kind, n in self.lights]
+            steps += ["ssao"] * self.ssao + ["ibl"] * self.ibl
+        else:
+            steps.append(self.shading)
+        if self.background != "none":
+            steps.append(f"background {self.background}")
+        if self.supersample > 1:
+            steps.append(f"downsample {self.supersample}x")
+        return steps
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.steps)
+
+    def __contains__(self, step: object) -> bool:
+        return step in self.steps
+
+    def __str__(self) -> str:
+        return "; ".join(self.steps)
 
 
 @dataclass
 class RenderOutput:
-    """image (B, 3, H, W) linear radiance incl. background; alpha (B, 1, H, W) coverage;
-    gbuffer {channel: (B, C, H, W)} for the requested channels; plan: the passes that ran."""
+    """What :class:`Renderer` returns.
+
+    Attributes:
+        image: ``(B, 3, H, W)`` linear HDR radiance including the background.
+        alpha: ``(B, 1, H, W)`` coverage (times the material's base-colour alpha when the
+            ``alpha`` channel was requested).
+        gbuffer: ``{channel: (B, C, H, W)}`` for the requested channels.
+        plan: the :class:`RenderPlan` that ran.
+    """
 
     image: torch.Tensor
     alpha: torch.Tensor
     gbuffer: dict[str, torch.Tensor]
-    plan: list[str]
+    plan: RenderPlan
 
 
 def camera_position(view: torch.Tensor) -> torch.Tensor:
-    """Eye positions (B, 3) of world -> view matrices (B, 4, 4): -R^T t."""
+    """Eye positions ``(B, 3)`` of world -> view matrices ``(B, 4, 4)``: ``-R^T t``."""
     rot, t = view[:, :3, :3], view[:, :3, 3:]
     return -(rot.transpose(1, 2) @ t).squeeze(-1)
 
 
 def view_rays(view: torch.Tensor, proj: torch.Tensor, resolution: tuple[int, int]) -> torch.Tensor:
-    """Unit world-space directions (B, 3, H, W) from the eye through each pixel centre."""
+    """Unit world-space directions from the eye through each pixel centre.
+
+    Args:
+        view: ``(B, 4, 4)`` world -> view; proj: ``(B, 4, 4)`` or ``(1, 4, 4)``.
+        resolution: ``(H, W)``.
+
+    Returns:
+        ``(B, 3, H, W)``.
+    """
     h, w = resolution
     dtype, device = proj.dtype, proj.device
     xs = (2 * torch.arange(w, dtype=dtype, device=device) + 1) / w - 1
@@ -99,18 +165,43 @@ def view_rays(view: torch.Tensor, proj: torch.Tensor, resolution: tuple[int, int
 
     d = unproject(-0.5) - unproject(-1.0)  # view space, both points in front of the eye
     d = view[:, :3, :3].transpose(1, 2).to(dtype) @ d
-    return _normalize(d.view(-1, 3, h, w), dim=1)
+    return safe_normalize(d.view(-1, 3, h, w), dim=1)
+
+
+def _check_camera(name: str, m: torch.Tensor) -> torch.Tensor:
+    """``(4, 4)`` or ``(B, 4, 4)`` finite, invertible matrices -> ``(B, 4, 4)``."""
+    if isinstance(m, torch.Tensor) and m.dim() == 2:
+        m = m.unsqueeze(0)
+    check_tensor(name, m, ("B", 4, 4), floating=True, finite=True)
+    m64 = m.detach().to(torch.float64)
+    # |det| relative to the largest entry's 4th power: scale-free test for rank < 4
+    singular = torch.linalg.det(m64).abs() <= 1e-14 * m64.abs().amax((-2, -1)) ** 4
+    if bool(singular.any()):
+        bad = singular.nonzero().flatten().tolist()
+        raise ValueError(f"{name}: matrix of batch item(s) {bad} is singular (e.g. all zero, "
+                         "or a look_at with eye == target); expected an invertible 4x4")
+    return m
 
 
 class Renderer(nn.Module):
-    """Differentiable deferred renderer (see the module docstring).
+    """Differentiable deferred renderer (see the module docstring for the data flow).
 
-    resolution: (H, W). shading: "pbr" | "headlight" | "unlit". supersample: render at
-    s x the resolution and box-filter down (anti-aliasing). background: RGB for empty
-    pixels (replaced by the environment when ``environment_background``).
-    texture_filter: "trilinear" | "bilinear" | "nearest".
-    ssao: an enabled ``torchraster.post.SSAO`` module: its AO (from depth and view-space
-    normals) multiplies the material AO before lighting ("pbr" shading only).
+    Args:
+        resolution: ``(H, W)`` or an int for a square image.
+        shading: ``"pbr"``, ``"headlight"`` or ``"unlit"``.
+        supersample: render at ``s x`` the resolution and box-filter down (anti-aliasing).
+        cull_backfaces: drop clockwise (back-facing) triangles.
+        background: RGB (3 non-negative finite floats) of empty pixels; replaced by the
+            environment when ``environment_background``.
+        environment_background: show the environment behind the scene.
+        texture_filter: ``"trilinear"``, ``"bilinear"`` or ``"nearest"``.
+        ssao: an enabled ``torchraster.post.SSAO`` module: its AO (from depth and view-space
+            normals) multiplies the material AO before lighting (``"pbr"`` shading only).
+        mip_cache_bytes: bound of the cache of constant textures' mip pyramids.
+
+    Example:
+        >>> renderer = Renderer(256, shading="headlight")
+        >>> out = renderer(tr.load_spot(), view, proj)   # out.image (B, 3, 256, 256)
     """
 
     def __init__(
@@ -124,143 +215,200 @@ class Renderer(nn.Module):
         environment_background: bool = True,
         texture_filter: str = "trilinear",
         ssao: nn.Module | None = None,
+        mip_cache_bytes: int = 512 * 2**20,
     ) -> None:
         super().__init__()
         self.resolution = check_resolution(resolution)
         if shading not in SHADING:
             raise ValueError(f"shading: expected one of {SHADING}, got {shading!r}")
-        if int(supersample) < 1:
-            raise ValueError(f"supersample: expected an int >= 1, got {supersample}")
-        if texture_filter not in ("trilinear", "bilinear", "nearest"):
-            raise ValueError(f"texture_filter: expected trilinear|bilinear|nearest, got "
+        if isinstance(supersample, bool) or not isinstance(supersample, int) or supersample < 1:
+            raise ValueError(f"supersample: expected an int >= 1, got {supersample!r}")
+        if texture_filter not in TEXTURE_FILTERS:
+            raise ValueError(f"texture_filter: expected one of {TEXTURE_FILTERS}, got "
                              f"{texture_filter!r}")
+        try:
+            bg = torch.as_tensor(background, dtype=torch.float32).flatten()
+        except (TypeError, ValueError, RuntimeError):
+            raise TypeError(f"background: expected 3 floats (RGB), got {background!r}") from None
+        if bg.numel() != 3 or not bool(torch.isfinite(bg).all()) or bool((bg < 0).any()):
+            raise ValueError(f"background: expected 3 finite, non-negative floats (linear RGB), "
+                             f"got {background!r}")
         self.shading = shading
-        self.supersample = int(supersample)
-        self.cull_backfaces = cull_backfaces
-        self.register_buffer("background", torch.tensor(list(background), dtype=torch.float32),
-                             persistent=False)
-        self.environment_background = environment_background
+        self.supersample = supersample
+        self.cull_backfaces = bool(cull_backfaces)
+        self.register_buffer("background", bg, persistent=False)
+        self.environment_background = bool(environment_background)
         self.texture_filter = texture_filter
         self.ssao = ssao if ssao is not None and getattr(ssao, "enabled", True) else None
-        self._texture_cache: dict = {}
+        self.mip_cache = MipCache(mip_cache_bytes)
 
-    def plan(self, scene: RenderScene, lights: Lights | None, environment: Environment | None,
-             channels: Iterable[str] = ()) -> tuple[list[str], set[str]]:
-        """The passes this call will run, and the G-buffer channels it computes."""
-        channels = check_channels(channels)
-        needed = set(channels) | _SHADING_NEEDS[self.shading] | {"mask"}
-        if self.shading == "pbr" and lights is None and environment is None:
-            needed = set(channels) | {"albedo", "emissive", "mask"}
-        if self.ssao is not None and self.shading == "pbr" and (
-                lights is not None or environment is not None):
-            needed |= {"depth"}
-        passes = [f"rasterize {self.resolution[0] * self.supersample}x"
-                  f"{self.resolution[1] * self.supersample}"]
-        passes.append("gbuffer " + ",".join(sorted(needed)))
-        if self.shading == "pbr":
-            if lights is not None:
-                for kind in ("ambient", "directional", "point", "spot"):
-                    group = getattr(lights, kind, None)
-                    if group is not None:
-                        count = getattr(group, "count", None)
-                        passes.append(f"light {kind}" + (f" x{count}" if count else ""))
-            if "depth" in needed and self.ssao is not None:
-                passes.append("ssao")
-            if environment is not None:
-                passes.append("ibl")
-            if lights is None and environment is None:
-                passes.append("unlit (no lights, no environment)")
-        else:
-            passes.append(self.shading)
+    def plan(self, scene: RenderScene, lights: Lights | None = None,
+             environment: Environment | None = None, channels: Iterable[str] = ()
+             ) -> RenderPlan:
+        """Decide the passes of a render call (``forward`` runs exactly these).
+
+        Warns (:class:`NotImplementedWarning`, once per cause) where the input asks for
+        something the renderer does not do yet, and when ``"pbr"`` has nothing to light it.
+        """
+        scene = as_render_scene(scene)
+        requested = check_channels(channels)
+        if lights is not None and not isinstance(lights, Lights):
+            raise TypeError(f"lights: expected a torchraster.Lights or None, got "
+                            f"{type(lights).__name__}")
+        if environment is not None and not isinstance(environment, Environment):
+            raise TypeError(f"environment: expected a torchraster.Environment or None, got "
+                            f"{type(environment).__name__}")
+        _warn_unsupported_materials(scene)
+        shading = self.shading
+        if shading == "pbr" and lights is None and environment is None:
+            warnings.warn("Renderer(shading='pbr') got no lights and no environment: rendering "
+                          "albedo + emissive (unlit). Pass lights= or environment=, or use "
+                          "shading='unlit' to say so.", stacklevel=3)
+            shading = "unlit"
+        ssao = self.ssao is not None and shading == "pbr"
+        channels = set(requested) | _SHADING_NEEDS[shading] | ({"depth"} if ssao else set())
+        light_kinds = []
+        if shading == "pbr" and lights is not None:
+            if lights.ambient is not None:
+                light_kinds.append(("ambient", None))
+            for kind in ("directional", "point", "spot"):
+                group = getattr(lights, kind)
+                if group is not None and group.count:
+                    light_kinds.append((kind, group.count))
         if environment is not None and self.environment_background:
-            passes.append("background environment")
+            background = "environment"
         elif bool((self.background != 0).any()):
-            passes.append("background colour")
-        if self.supersample > 1:
-            passes.append(f"downsample {self.supersample}x")
-        return passes, needed
+            background = "colour"
+        else:
+            background = "none"
+        textured = any(m is not None and any(getattr(m, s) is not None for s in _TEXTURE_SLOTS)
+                       for m in scene.materials)
+        single_sided = [m is not None and not m.double_sided for m in scene.materials]
+        cull = "all" if self.cull_backfaces else "single-sided" if any(single_sided) else "none"
+        s = self.supersample
+        return RenderPlan(
+            resolution=(self.resolution[0] * s, self.resolution[1] * s), supersample=s,
+            channels=frozenset(channels), requested=frozenset(requested), shading=shading,
+            lights=tuple(light_kinds), ssao=ssao,
+            ibl=shading == "pbr" and environment is not None, background=background, cull=cull,
+            derivatives=textured and self.texture_filter == "trilinear")
 
     def forward(
         self,
-        scene: RenderScene,
+        scene: RenderScene | object,
         view: torch.Tensor,
         proj: torch.Tensor,
         lights: Lights | None = None,
         environment: Environment | None = None,
         channels: Iterable[str] = (),
     ) -> RenderOutput:
-        """Render. view, proj: (B, 4, 4) (or (4, 4)); scene positions (V, 3) or (B, V, 3).
+        """Render a batch of scenes.
 
-        channels: extra G-buffer channels to return (see ``torchraster.gbuffer.CHANNELS``).
+        Args:
+            scene: a :class:`~torchraster.scene.RenderScene`, a Mesh, an ``io.Scene`` or a
+                list of B meshes (item i draws mesh i).
+            view: ``(B, 4, 4)`` or ``(4, 4)`` world -> view; proj: likewise (OpenGL clip).
+            lights: :class:`Lights` of batch size B or 1, or None.
+            environment: an :class:`Environment` for image-based lighting / background.
+            channels: G-buffer channels to return (see :data:`CHANNELS`).
+
+        Returns:
+            :class:`RenderOutput` (image, alpha, requested G-buffer channels, plan).
         """
-        if not isinstance(scene, RenderScene):
-            raise TypeError(f"scene: expected a RenderScene, got {type(scene).__name__}")
-        view = view.unsqueeze(0) if view.dim() == 2 else view
-        proj = proj.unsqueeze(0) if proj.dim() == 2 else proj
-        check_tensor("view", view, ("B", 4, 4), floating=True, finite=True)
-        check_tensor("proj", proj, ("B", 4, 4), floating=True, finite=True)
-        requested = check_channels(channels)
-        plan, needed = self.plan(scene, lights, environment, requested)
-        log.info("torchraster plan: %s", "; ".join(plan))
+        scene = as_render_scene(scene)
+        view = _check_camera("view", view)
+        proj = _check_camera("proj", proj)
+        plan = self.plan(scene, lights, environment, channels)
+        log.debug("torchraster plan: %s", plan)
 
         positions = scene.positions
-        b = max(view.shape[0], proj.shape[0], positions.shape[0] if positions.dim() == 3 else 1)
+        b = max(view.shape[0], proj.shape[0], scene.batch_size)
+        for name, n in (("view", view.shape[0]), ("proj", proj.shape[0]),
+                        ("scene", scene.batch_size)):
+            if n not in (1, b):
+                raise ValueError(f"{name}: batch size {n} does not match the others' {b} "
+                                 "(use 1 to share)")
         view, proj = view.expand(b, 4, 4), proj.expand(b, 4, 4)
-        res = (self.resolution[0] * self.supersample, self.resolution[1] * self.supersample)
         clip = transform_points(positions, (proj @ view).to(positions.dtype))
         if clip.shape[0] != b:
             clip = clip.expand(b, -1, -1)
-        textured = any(m is not None and any(getattr(m, s) is not None for s in (
-            "base_color_texture", "metallic_roughness_texture", "normal_texture",
-            "occlusion_texture", "emissive_texture")) for m in scene.materials)
-        frags = rasterize(clip, scene.faces, res, cull_backfaces=self.cull_backfaces,
-                          derivatives=textured and self.texture_filter == "trilinear")
+        face_ranges = scene.face_ranges
+        if face_ranges is not None and face_ranges.shape[0] != b:
+            face_ranges = face_ranges.expand(b, 2)
+        frags = rasterize(clip, scene.faces, plan.resolution,
+                          cull_backfaces=_cull_mask(plan, scene), face_ranges=face_ranges,
+                          derivatives=plan.derivatives)
         normals = scene.normals
-        if "normal" in needed and normals is None:
+        if "normal" in plan.channels and normals is None:
             normals = vertex_normals(positions, scene.faces)
-        gb = geometry_pass(frags, needed, positions, view, normals, scene.uvs, scene.tangents,
-                           scene.face_material, scene.materials, self.texture_filter,
-                           self._texture_cache)
-        mask = gb["mask"]
+        gb = geometry_pass(frags, plan.channels, positions=positions, view=view,
+                           normals=normals, uvs=scene.uvs, tangents=scene.tangents,
+                           face_material=scene.face_material, materials=scene.materials,
+                           texture_filter=self.texture_filter, mip_cache=self.mip_cache)
         eye = camera_position(view.to(positions.dtype))
-        if self.shading == "headlight":
-            to_eye = _normalize(eye[:, :, None, None] - gb["position"], dim=1)
-            cos = (gb["normal"] * to_eye).sum(1, keepdim=True).clamp(min=0)
-            radiance = gb["albedo"] * cos
-        elif self.shading == "unlit" or (lights is None and environment is None):
-            radiance = gb["albedo"] + gb["emissive"]
-        else:
-            ibl = None
-            if environment is not None:
-                def ibl(n, v, a, m, r):
-                    return shade_ibl(n, v, a, m, r, None, environment)
-            if lights is None:
-                lights = Lights()
-            if self.ssao is not None:
-                normal_view = torch.einsum("bij,bjhw->bihw", view[:, :3, :3].to(
-                    gb["normal"].dtype), gb["normal"])
-                depth = torch.where(mask > 0, gb["depth"], torch.zeros_like(gb["depth"]))
-                gb["ao"] = gb["ao"] * self.ssao(depth, normal_view, projection=proj.to(
-                    depth.dtype))
-            radiance = shade(gb["position"], gb["normal"], gb["albedo"], gb["metallic"],
-                             gb["roughness"], gb["ao"], gb["emissive"], mask, eye, lights,
-                             ibl=ibl)
+        radiance = self._shade(plan, gb, view, proj, eye, lights, environment)
+        mask = gb.mask
         radiance = radiance * mask
-        if environment is not None and self.environment_background:
-            rays = view_rays(view, proj, res).to(radiance.dtype)
+        if plan.background == "environment":
+            rays = view_rays(view, proj, plan.resolution).to(radiance.dtype)
             background = environment.background(rays)
         else:
             background = self.background.to(radiance).view(1, 3, 1, 1)
         image = radiance + (1 - mask) * background
-        alpha = mask * gb["alpha"] if "alpha" in gb else mask
-        outputs = {ch: gb[ch] for ch in requested}
-        if self.supersample > 1:
-            s = self.supersample
+        alpha = mask * gb.alpha if gb.alpha is not None else mask
+        outputs = GBuffer(**{ch: getattr(gb, ch) for ch in plan.requested})
+        if plan.supersample > 1:
+            s = plan.supersample
             image, alpha = F.avg_pool2d(image, s), F.avg_pool2d(alpha, s)
-            outputs = {k: (v[:, :, ::s, ::s] if not v.is_floating_point()
-                           else F.avg_pool2d(v, s)) for k, v in outputs.items()}
-        return RenderOutput(image=image, alpha=alpha, gbuffer=outputs, plan=plan)
+            outputs = outputs.downsample(s)
+        return RenderOutput(image=image, alpha=alpha, gbuffer=outputs.as_dict(), plan=plan)
+
+    def _shade(self, plan: RenderPlan, gb: GBuffer, view: torch.Tensor, proj: torch.Tensor,
+               eye: torch.Tensor, lights: Lights | None,
+               environment: Environment | None) -> torch.Tensor:
+        """Radiance ``(B, 3, H, W)`` of the covered pixels, by the plan's shading path."""
+        if plan.shading == "headlight":
+            to_eye = safe_normalize(eye[:, :, None, None] - gb.position, dim=1)
+            return gb.albedo * (gb.normal * to_eye).sum(1, keepdim=True).clamp(min=0)
+        if plan.shading == "unlit":
+            return gb.albedo + gb.emissive
+        if plan.ssao:
+            normal_view = torch.einsum("bij,bjhw->bihw", view[:, :3, :3].to(gb.normal.dtype),
+                                       gb.normal)
+            depth = torch.where(gb.mask > 0, gb.depth, torch.zeros_like(gb.depth))
+            gb = gb.replace(ao=gb.ao * self.ssao(depth, normal_view,
+                                                 projection=proj.to(depth.dtype)))
+        ibl = None
+        if plan.ibl:
+            def ibl(n, v, a, m, r):
+                return shade_ibl(n, v, a, m, r, None, environment)
+        return shade(gb, camera_position=eye, lights=lights, ibl=ibl)
 
 
-__all__ = ["CHANNELS", "RenderOutput", "RenderScene", "Renderer", "camera_position",
-           "view_rays"]
+def _cull_mask(plan: RenderPlan, scene: RenderScene) -> bool | torch.Tensor:
+    """``rasterize``'s ``cull_backfaces``: a bool, or ``(F,)`` True on faces of single-sided
+    materials (glTF ``doubleSided: false``; no material = drawn from both sides)."""
+    if plan.cull != "single-sided":
+        return plan.cull == "all"
+    single = torch.tensor([m is not None and not m.double_sided for m in scene.materials],
+                          device=scene.faces.device)
+    if scene.face_material is None:
+        return single[:1].expand(scene.faces.shape[0])
+    return single.index_select(0, scene.face_material.to(single.device))
+
+
+_WARNED: set[tuple] = set()
+
+
+def _warn_unsupported_materials(scene: RenderScene) -> None:
+    """Say once per material what the renderer does not do yet (glTF alpha modes)."""
+    for m in scene.materials:
+        if m is not None and m.alpha_mode != "OPAQUE" and (m.name, m.alpha_mode) not in _WARNED:
+            _WARNED.add((m.name, m.alpha_mode))
+            warnings.warn(f"material {m.name!r}: alpha_mode {m.alpha_mode!r} (alpha_cutoff "
+                          f"{m.alpha_cutoff}) is not implemented yet; rendered as OPAQUE",
+                          NotImplementedWarning, stacklevel=4)
+
+
+__all__ = ["CHANNELS", "NotImplementedWarning", "RenderOutput", "RenderPlan", "RenderScene",
+           "Renderer", "camera_position", "view_rays"]

@@ -97,13 +97,14 @@ def clip_and_project(
     face: torch.Tensor,
     batch: torch.Tensor,
     resolution: tuple[int, int],
-    cull_backfaces: bool,
+    cull_backfaces: bool | torch.Tensor,
 ) -> ScreenTriangles:
     """Clip, cull and project the triangles (batch[n], faces[face[n]]).
 
     clip_pos: (B, V, 4) clip-space vertices; screen_pos: (B, V, 3) their :func:`project`
     ions; codes: (B, V) their :func:`outcodes`; faces: (F, 3); face, batch: (N,) int64.
-    Front faces are counter-clockwise in NDC (y up). Returns :class:`ScreenTriangles`.
+    Front faces are counter-clockwise in NDC (y up). cull_backfaces: drop back faces, for
+    every face (bool) or per face ((F,) bool tensor). Returns :class:`ScreenTriangles`.
     """
     n_vert = codes.shape[1]
     # Global vertex ids (item * V + vertex) of every corner; index_select is the fast gather.
@@ -133,7 +134,9 @@ def clip_and_project(
     # Twice the signed area in pixel space (y down): negative = CCW in NDC = front facing.
     area = (x[1] - x[0]) * (y[2] - y[0]) - (x[2] - x[0]) * (y[1] - y[0])
     ok = torch.isfinite(area) & (area != 0)
-    if cull_backfaces:
+    if isinstance(cull_backfaces, torch.Tensor):  # per face: single-sided materials
+        ok &= (area < 0) | ~cull_backfaces.index_select(0, face_out)
+    elif cull_backfaces:
         ok &= area < 0
     # Pixel boxes; cull triangles whose box holds no pixel centre (tiny or off-screen).
     xmin = torch.ceil(x.amin(0).clamp_(min=0))

@@ -93,7 +93,7 @@ def rasterize(
     clip_pos: torch.Tensor,
     faces: torch.Tensor,
     resolution: tuple[int, int] | int,
-    cull_backfaces: bool = False,
+    cull_backfaces: bool | torch.Tensor = False,
     face_ranges: torch.Tensor | None = None,
     *,
     derivatives: bool = False,
@@ -108,7 +108,8 @@ def rasterize(
         front facing.
     resolution: (H, W) or an int for a square image. Pixel (row i, col j) samples NDC
         x = 2(j + 0.5)/W - 1, y = 1 - 2(i + 0.5)/H (row 0 is the top).
-    cull_backfaces: drop clockwise (back-facing) triangles.
+    cull_backfaces: drop clockwise (back-facing) triangles: all of them (True), or those
+        flagged in an (F,) bool tensor (e.g. faces of single-sided materials).
     face_ranges: optional (B, 2) int64 [start, end): batch item b rasterizes only
         faces[start:end] (packed batches of different meshes, see ``mesh.pack_meshes``).
     derivatives: also return screen-space derivatives of the barycentrics (for mip-mapping
@@ -125,6 +126,12 @@ def rasterize(
                                                           face_ranges)
     if int(tile) < 1:
         raise ValueError(f"tile: expected a positive int, got {tile}")
+    if isinstance(cull_backfaces, torch.Tensor):
+        check_tensor("cull_backfaces", cull_backfaces, (faces.shape[0],))
+        if cull_backfaces.dtype != torch.bool:
+            raise TypeError(f"cull_backfaces: expected a bool or an (F,) bool tensor, got "
+                            f"{cull_backfaces.dtype}")
+        cull_backfaces = cull_backfaces.to(clip_pos.device)
     b = clip_pos.shape[0]
     max_candidates = max(1024, int(memory_budget) // _BYTES_PER_CANDIDATE)
     keys = torch.full((b * h * w,), _EMPTY_KEY, dtype=torch.int64, device=clip_pos.device)

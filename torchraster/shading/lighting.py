@@ -24,13 +24,16 @@ import torch
 from torch.utils.checkpoint import checkpoint
 
 from torchraster._validate import check_tensor
-from torchraster.shading.brdf import (
-    DIELECTRIC_F0,
-    MIN_COS,
-    MIN_ROUGHNESS,
+from torchraster.gbuffer import GBuffer
+from torchraster.numerics import (
+    LOW_PRECISION,
+    diffuse_color,
     dot,
+    finish_low_precision,
     safe_normalize,
+    specular_f0,
 )
+from torchraster.shading.brdf import MIN_COS, MIN_ROUGHNESS
 from torchraster.shading.ibl import dfg_lut, lookup_dfg
 from torchraster.shading.lights import (
     DirectionalLights,
@@ -56,9 +59,6 @@ DFG_LUT_SAMPLES: int = 96
 IBLHook = Callable[
     [torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor
 ]
-
-_LOW_PRECISION = (torch.float16, torch.bfloat16)
-
 
 def env_brdf(
     f0: torch.Tensor, roughness: torch.Tensor, n_dot_v: torch.Tensor
@@ -110,23 +110,12 @@ def _direct(
     return (out * e).sum(dim=1)
 
 
-def _check_map(name: str, value: object, b: int, c: int, hw: tuple[int, int]) -> torch.Tensor:
-    return check_tensor(name, value, (b, c, hw[0], hw[1]), floating=True)
-
-
 def shade(
-    position: torch.Tensor,
-    normal: torch.Tensor,
-    albedo: torch.Tensor,
-    metallic: torch.Tensor,
-    roughness: torch.Tensor,
-    ao: torch.Tensor | None,
-    emissive: torch.Tensor | None,
-    mask: torch.Tensor | None,
-    camera_position: torch.Tensor,
-    lights: Lights,
-    model: str | ShadingModel = "cook_torrance",
+    gbuffer: GBuffer,
     *,
+    camera_position: torch.Tensor,
+    lights: Lights | None = None,
+    model: str | ShadingModel = "cook_torrance",
     ibl: IBLHook | None = None,
     light_chunk: int | None = None,
     checkpoint_chunks: bool | None = None,
@@ -134,17 +123,14 @@ def shade(
     """Deferred lighting of a G-buffer.
 
     Args:
-        position: ``(B, 3, H, W)`` world-space surface positions (m).
-        normal: ``(B, 3, H, W)`` shading normals (re-normalised here; zero -> unlit).
-        albedo: ``(B, 3, H, W)`` base colour, linear RGB.
-        metallic: ``(B, 1, H, W)`` in [0, 1].
-        roughness: ``(B, 1, H, W)`` perceptual roughness in [0, 1].
-        ao: ``(B, 1, H, W)`` ambient occlusion in [0, 1] (multiplies ambient and IBL only),
-            or None (= 1).
-        emissive: ``(B, 3, H, W)`` emitted radiance (nits), added as is, or None (= 0).
-        mask: ``(B, 1, H, W)`` bool / float coverage (> 0 = covered), or None (all).
+        gbuffer: a :class:`~torchraster.gbuffer.GBuffer` with ``position`` (world, m),
+            ``normal`` (re-normalised here; zero -> unlit), ``albedo`` (linear RGB),
+            ``metallic`` and ``roughness`` (perceptual), each ``(B, C, H, W)``; optional
+            ``ao`` (multiplies ambient and IBL only; None = 1), ``emissive`` (radiance added
+            as is; None = 0) and ``mask`` (> 0 = covered; None = all).
         camera_position: ``(B, 3)`` world-space eye positions.
-        lights: :class:`~torchraster.shading.lights.Lights` with batch size B.
+        lights: :class:`~torchraster.shading.lights.Lights` of batch size B or 1 (broadcast),
+            or None (no punctual or ambient light).
         model: name in :data:`~torchraster.shading.models.MODELS` or a callable
             ``model(n, v, l, surface)`` (see :mod:`torchraster.shading.models`).
         ibl: optional ``ibl(n, v, albedo, metallic, roughness) -> (B, 3, H, W)`` radiance
@@ -159,25 +145,29 @@ def shade(
     Returns:
         ``(B, 3, H, W)`` linear HDR radiance, 0 where ``mask`` is 0, in the G-buffer's
         dtype (float16 / bfloat16 inputs are shaded in float32 and saturated on output).
+
+    Example:
+        >>> gb = GBuffer(position=pos, normal=n, albedo=a, metallic=m, roughness=r)
+        >>> radiance = shade(gb, camera_position=eye, lights=lights)
     """
-    check_tensor("position", position, ("B", 3, "H", "W"), floating=True)
+    if not isinstance(gbuffer, GBuffer):
+        raise TypeError(f"gbuffer: expected a torchraster.GBuffer, got {type(gbuffer).__name__}"
+                        " (build one with GBuffer(position=..., normal=..., ...))")
+    gbuffer.require("position", "normal", "albedo", "metallic", "roughness", by="shade")
+    position, normal, albedo = gbuffer.position, gbuffer.normal, gbuffer.albedo
+    metallic, roughness = gbuffer.metallic, gbuffer.roughness
+    ao, emissive, mask = gbuffer.ao, gbuffer.emissive, gbuffer.mask
     b, _, h, w = position.shape
-    hw = (h, w)
-    _check_map("normal", normal, b, 3, hw)
-    _check_map("albedo", albedo, b, 3, hw)
-    _check_map("metallic", metallic, b, 1, hw)
-    _check_map("roughness", roughness, b, 1, hw)
-    if ao is not None:
-        _check_map("ao", ao, b, 1, hw)
-    if emissive is not None:
-        _check_map("emissive", emissive, b, 3, hw)
-    if mask is not None:
-        check_tensor("mask", mask, (b, 1, h, w))
     check_tensor("camera_position", camera_position, (b, 3), floating=True)
+    if lights is None:
+        lights = Lights()
     if not isinstance(lights, Lights):
         raise TypeError(f"lights: expected a Lights, got {type(lights).__name__}")
-    if lights.batch_size not in (None, b):
-        raise ValueError(f"lights: batch size {lights.batch_size} != G-buffer batch size {b}")
+    if lights.batch_size not in (None, 1, b):
+        raise ValueError(f"lights: batch size {lights.batch_size} != G-buffer batch size {b} "
+                         "(use batch size 1 to share lights)")
+    if lights.batch_size == 1 and b > 1:
+        lights = lights.expand(b)
     shading_model = get_model(model)
     if ibl is not None and not callable(ibl):
         raise TypeError(f"ibl: expected a callable or None, got {type(ibl).__name__}")
@@ -189,7 +179,7 @@ def shade(
     out_dtype = inputs[0].dtype
     for t in inputs[1:]:
         out_dtype = torch.promote_types(out_dtype, t.dtype)
-    dt = torch.float32 if out_dtype in _LOW_PRECISION else out_dtype
+    dt = torch.float32 if out_dtype in LOW_PRECISION else out_dtype
     dev = position.device
 
     covered = None if mask is None else (mask > 0)
@@ -238,8 +228,8 @@ def shade(
         r = 2.0 * n_dot_v * n - v  # reflect(-v, n)
         e_n = sh_irradiance(lights.ambient, n).clamp_min(0.0)
         e_r = sh_irradiance(lights.ambient, r).clamp_min(0.0)
-        f0 = DIELECTRIC_F0 * (1.0 - metal) + base * metal
-        indirect = ((1.0 - metal) * base * e_n + env_brdf(f0, rough, n_dot_v) * e_r) / (
+        f0 = specular_f0(base, metal)
+        indirect = (diffuse_color(base, metal) * e_n + env_brdf(f0, rough, n_dot_v) * e_r) / (
             torch.pi
         )
     if ibl is not None:
@@ -256,7 +246,4 @@ def shade(
         radiance = radiance + prep(emissive)
     if covered is not None:
         radiance = torch.where(covered, radiance, 0.0)
-    if out_dtype in _LOW_PRECISION:
-        big = torch.finfo(out_dtype).max
-        radiance = radiance.clamp(-big, big)
-    return radiance.to(out_dtype)
+    return finish_low_precision(radiance, out_dtype)

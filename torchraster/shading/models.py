@@ -28,12 +28,8 @@ from dataclasses import dataclass
 
 import torch
 
-from torchraster.shading.brdf import (
-    DIELECTRIC_F0,
-    MIN_ROUGHNESS,
-    dot,
-    safe_normalize,
-)
+from torchraster.numerics import diffuse_color, dot, safe_normalize, specular_f0
+from torchraster.shading.brdf import MIN_ROUGHNESS
 from torchraster.shading.brdf import (
     cook_torrance as _cook_torrance_brdf,
 )
@@ -65,15 +61,6 @@ class Surface:
 
 
 ShadingModel = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, Surface], torch.Tensor]
-
-
-def _specular_color(surface: Surface) -> torch.Tensor:
-    """f0 = mix(0.04, albedo, metallic) (Filament section 4.8.3)."""
-    return DIELECTRIC_F0 * (1.0 - surface.metallic) + surface.albedo * surface.metallic
-
-
-def _diffuse_color(surface: Surface) -> torch.Tensor:
-    return (1.0 - surface.metallic) * surface.albedo
 
 
 def _blinn_phong_exponent(roughness: torch.Tensor) -> torch.Tensor:
@@ -113,7 +100,7 @@ def blinn_phong(n: torch.Tensor, v: torch.Tensor, l: torch.Tensor, surface: Surf
     No Fresnel or visibility term.
     """
     lobe, _, _ = _blinn_phong_lobe(n, v, l, surface.roughness)
-    f = _diffuse_color(surface) / math.pi + _specular_color(surface) * lobe
+    f = diffuse_color(surface.albedo, surface.metallic) / math.pi + specular_f0(surface.albedo, surface.metallic) * lobe
     return f * dot(n, l).clamp(0.0, 1.0)
 
 
@@ -145,7 +132,7 @@ def toon(n: torch.Tensor, v: torch.Tensor, l: torch.Tensor, surface: Surface):
     hit = (n_dot_h > torch.exp(cutoff)) & (n_dot_l > 0)
     tint = 1.0 + (surface.albedo - 1.0) * surface.metallic
     spec = torch.where(hit, TOON_SPECULAR * tint, 0.0)
-    return (_diffuse_color(surface) * bands + spec) / math.pi
+    return (diffuse_color(surface.albedo, surface.metallic) * bands + spec) / math.pi
 
 
 #: Built-in shading models by name.

@@ -1,0 +1,156 @@
+"""Renderer API: what it accepts, what it refuses, what it warns about, and the plan it ran."""
+
+import gc
+import warnings
+
+import pytest
+import torch
+import trimesh
+
+import torchraster as tr
+from torchraster import camera
+
+VIEW = camera.look_at([0.0, 0.0, 4.0], [0.0, 0.0, 0.0])
+PROJ = camera.perspective(40.0, 1.0, 0.1)
+
+
+def _quad(z: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """A unit quad in the z plane, counter-clockwise seen from +z (front faces the camera)."""
+    pos = torch.tensor([[-1, -1, z], [1, -1, z], [1, 1, z], [-1, 1, z]], dtype=torch.float32)
+    return pos, torch.tensor([[0, 1, 2], [0, 2, 3]])
+
+
+def _ico(subdivisions: int = 2, radius: float = 1.0) -> tr.Mesh:
+    ico = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return tr.Mesh(torch.tensor(ico.vertices, dtype=torch.float32), torch.tensor(ico.faces))
+
+
+def test_single_sided_materials_cull_their_back_faces():
+    pos, faces = _quad()
+    behind = camera.look_at([0.0, 0.0, -4.0], [0.0, 0.0, 0.0])
+    renderer = tr.Renderer(16, shading="unlit")
+    seen = {}
+    for name, mats in [("none", []), ("double", [tr.Material(double_sided=True)]),
+                       ("single", [tr.Material(double_sided=False)])]:
+        out = renderer(tr.RenderScene(pos, faces, materials=mats), behind, PROJ)
+        seen[name] = float(out.alpha.sum())
+        front = renderer(tr.RenderScene(pos, faces, materials=mats), VIEW, PROJ)
+        assert float(front.alpha.sum()) > 50  # seen from the front: drawn in every case
+    assert seen["none"] > 50 and seen["double"] == seen["none"] and seen["single"] == 0
+    # per face: a two-material scene culls only the single-sided material's faces
+    scene = tr.RenderScene(pos, faces, face_material=torch.tensor([0, 1]), materials=[
+        tr.Material(double_sided=False), tr.Material(double_sided=True)])
+    out = renderer(scene, behind, PROJ)
+    assert 0 < float(out.alpha.sum()) < seen["none"]
+    assert "cull single-sided" in str(out.plan)
+
+
+def test_alpha_modes_warn_until_implemented():
+    pos, faces = _quad()
+    mat = tr.Material(name="leaves", alpha_mode="MASK", alpha_cutoff=0.3, double_sided=True)
+    with pytest.warns(tr.NotImplementedWarning, match="alpha_mode 'MASK'"):
+        tr.Renderer(8, shading="unlit")(tr.RenderScene(pos, faces, materials=[mat]), VIEW, PROJ)
+
+
+def test_pbr_without_light_says_so_and_plans_unlit():
+    pos, faces = _quad()
+    with pytest.warns(UserWarning, match="no lights and no environment"):
+        out = tr.Renderer(8, shading="pbr")(tr.RenderScene(pos, faces), VIEW, PROJ)
+    assert out.plan.shading == "unlit" and "unlit" in out.plan
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        tr.Renderer(8, shading="unlit")(tr.RenderScene(pos, faces), VIEW, PROJ)
+
+
+@pytest.mark.parametrize("background, match", [
+    ((0.1, 0.2), "background"), ((0.0, float("nan"), 0.0), "background"),
+    ((-1.0, 0.0, 0.0), "background"), ("red", "background")])
+def test_background_is_checked(background, match):
+    with pytest.raises((ValueError, TypeError), match=match):
+        tr.Renderer(8, background=background)
+
+
+@pytest.mark.parametrize("face_material, match", [
+    (torch.tensor([0, 2]), r"\[0, 2\)"), (torch.tensor([-1, 0]), r"\[0, 2\)"),
+    (torch.tensor([0, 1, 1]), "face_material"), (torch.tensor([0.0, 1.0]), "integer")])
+def test_face_material_is_checked(face_material, match):
+    pos, faces = _quad()
+    with pytest.raises((ValueError, TypeError), match=match):
+        tr.RenderScene(pos, faces, face_material=face_material,
+                       materials=[tr.Material(), tr.Material()])
+
+
+@pytest.mark.parametrize("name", ["view", "proj"])
+def test_singular_cameras_are_refused(name):
+    pos, faces = _quad()
+    cams = {"view": VIEW, "proj": PROJ}
+    cams[name] = torch.zeros(4, 4)
+    with pytest.raises(ValueError, match=f"{name}: .*singular"):
+        tr.Renderer(8, shading="unlit")(tr.RenderScene(pos, faces), cams["view"], cams["proj"])
+
+
+def test_scene_mismatches_name_the_field():
+    pos, faces = _quad()
+    with pytest.raises(ValueError, match="RenderScene.faces"):
+        tr.RenderScene(pos, faces + 4)
+    with pytest.raises(ValueError, match="RenderScene.uvs"):
+        tr.RenderScene(pos, faces, uvs=torch.zeros(3, 2))
+    with pytest.raises(TypeError, match="scene"):
+        tr.Renderer(8, shading="unlit")("mesh.obj", VIEW, PROJ)
+    with pytest.raises(ValueError, match="batch size"):
+        tr.Renderer(8, shading="unlit")(tr.RenderScene(pos[None].expand(3, 4, 3), faces),
+                                        VIEW.expand(2, 4, 4), PROJ)
+
+
+def test_renderer_takes_meshes_scenes_and_batches_of_different_meshes():
+    small, large = _ico(1, 0.5), _ico(2, 1.0)
+    renderer = tr.Renderer(24, shading="headlight")
+    alone = [renderer(m, VIEW, PROJ).image for m in (small, large)]
+    both = renderer([small, large], VIEW, PROJ)  # item i draws mesh i
+    assert both.image.shape == (2, 3, 24, 24)
+    torch.testing.assert_close(both.image[0], alone[0][0], rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(both.image[1], alone[1][0], rtol=1e-5, atol=1e-5)
+    assert float(both.alpha[0].sum()) < float(both.alpha[1].sum())
+    scene = tr.Scene([small, small], torch.stack([torch.eye(4), torch.eye(4)]), ["a", "b"])
+    scene.transforms[1, 0, 3] = 1.5
+    out = renderer(scene, VIEW, PROJ)
+    assert float(out.alpha.sum()) > float(alone[0][0].ne(0).any(0).sum())
+
+
+def test_plan_is_what_forward_ran():
+    mesh = _ico(1)
+    lights = tr.Lights(point=tr.PointLights(torch.tensor([[[0.0, 0, 3], [1, 1, 3]]]),
+                                            torch.ones(1, 2, 3), torch.ones(1, 2)))
+    r = tr.Renderer(8, shading="pbr", supersample=2)
+    plan = r.plan(tr.RenderScene.from_mesh(mesh), lights, None, {"depth"})
+    out = r(mesh, VIEW, PROJ, lights, channels={"depth"})
+    assert out.plan == plan
+    assert list(out.plan) == plan.steps and str(out.plan) == "; ".join(plan.steps)
+    assert plan.lights == (("point", 2),) and "light point x2" in plan
+    assert set(out.gbuffer) == {"depth"} and plan.resolution == (16, 16)
+
+
+def test_mip_cache_is_bounded_and_sees_in_place_edits():
+    from torchraster.gbuffer import MipCache
+
+    pos, faces = _quad()
+    uvs = (pos[:, :2] + 1) / 2
+    renderer = tr.Renderer(16, shading="unlit", texture_filter="bilinear")
+    tex = torch.full((3, 8, 8), 0.25)
+    scene = tr.RenderScene(pos, faces, uvs=uvs, materials=[tr.Material(base_color_texture=tex)])
+    first = renderer(scene, VIEW, PROJ).image
+    tex.mul_(2.0)  # edited in place: the cached pyramid is stale
+    second = renderer(scene, VIEW, PROJ).image
+    torch.testing.assert_close(second, first * 2)
+    cache = MipCache(max_bytes=3 * 8 * 8 * 4 * 2)  # room for about one pyramid
+    renderer.mip_cache = cache
+    for _ in range(5):
+        texture = torch.rand(3, 8, 8)
+        renderer(tr.RenderScene(pos, faces, uvs=uvs,
+                                materials=[tr.Material(base_color_texture=texture)]), VIEW, PROJ)
+    assert len(cache) == 1 and cache.nbytes <= cache.max_bytes
+    del texture
+    gc.collect()
+    renderer(tr.RenderScene(pos, faces), VIEW, PROJ)
+    cache.get(torch.zeros(1), lambda: None, torch.float32, torch.device("cpu"))
+    assert len(cache) == 1  # the freed texture dropped out; the new one is in
