@@ -24,6 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import torch  # noqa: E402
 from benchmd import markdown_table, update_section  # noqa: E402
 
+from torchraster.gbuffer import GBuffer
 from torchraster.shading import MODELS, lights_from_config, shade  # noqa: E402
 from torchraster.shading.lighting import LIGHT_CHUNK_ELEMENTS  # noqa: E402
 
@@ -82,11 +83,35 @@ def run_pass(g, lights, backward: bool, chunk: int | None = None):
 
     def fn():
         if backward:
-            out = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=metallic, roughness=rough, mask=mask), camera_position=cam, lights=lights, light_chunk=chunk)
+            out = shade(
+                GBuffer(
+                    position=pos,
+                    normal=n,
+                    albedo=albedo,
+                    metallic=metallic,
+                    roughness=rough,
+                    mask=mask,
+                ),
+                camera_position=cam,
+                lights=lights,
+                light_chunk=chunk,
+            )
             out.sum().backward()
         else:
             with torch.no_grad():
-                shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=metallic, roughness=rough, mask=mask), camera_position=cam, lights=lights, light_chunk=chunk)
+                shade(
+                    GBuffer(
+                        position=pos,
+                        normal=n,
+                        albedo=albedo,
+                        metallic=metallic,
+                        roughness=rough,
+                        mask=mask,
+                    ),
+                    camera_position=cam,
+                    lights=lights,
+                    light_chunk=chunk,
+                )
 
     return fn
 
@@ -111,8 +136,9 @@ def to_png(img: torch.Tensor, path: Path, labels: list[tuple[int, int, str]] = (
 
 def sphere_batch(b: int, size: int):
     """Analytic unit spheres at the origin seen from +z: positions, normals, mask."""
-    y, x = torch.meshgrid(torch.linspace(1.05, -1.05, size), torch.linspace(-1.05, 1.05, size),
-                          indexing="ij")
+    y, x = torch.meshgrid(
+        torch.linspace(1.05, -1.05, size), torch.linspace(-1.05, 1.05, size), indexing="ij"
+    )
     r2 = x * x + y * y
     mask = r2 < 1
     z = torch.sqrt((1 - r2).clamp_min(0))
@@ -129,8 +155,13 @@ def tile(imgs: torch.Tensor, rows: int, cols: int) -> torch.Tensor:
 
 SCENE_LIGHTS = [
     {"type": "directional", "direction": [-1.0, -1.0, -1.0], "intensity": 2.5},
-    {"type": "point", "position": [1.5, 1.0, 1.8], "intensity": 6.0, "range": 8.0,
-     "color": [1.0, 0.75, 0.5]},
+    {
+        "type": "point",
+        "position": [1.5, 1.0, 1.8],
+        "intensity": 6.0,
+        "range": 8.0,
+        "color": [1.0, 0.75, 0.5],
+    },
     {"type": "ambient", "color": [0.08, 0.09, 0.12]},
 ]
 
@@ -141,14 +172,31 @@ def pictures() -> None:
     metals, roughs = [0.0, 0.5, 1.0], [0.0, 0.2, 0.4, 0.6, 0.8, 1.0]
     b = len(metals) * len(roughs)
     pos, n, mask = sphere_batch(b, size)
-    m = torch.tensor([mi for mi in metals for _ in roughs]).view(b, 1, 1, 1).expand(b, 1, size,
-                                                                                    size)
-    r = torch.tensor([ri for _ in metals for ri in roughs]).view(b, 1, 1, 1).expand(b, 1, size,
-                                                                                    size)
+    m = (
+        torch.tensor([mi for mi in metals for _ in roughs])
+        .view(b, 1, 1, 1)
+        .expand(b, 1, size, size)
+    )
+    r = (
+        torch.tensor([ri for _ in metals for ri in roughs])
+        .view(b, 1, 1, 1)
+        .expand(b, 1, size, size)
+    )
     albedo = torch.tensor([0.9, 0.55, 0.25]).view(1, 3, 1, 1).expand(b, 3, size, size)
     cam = torch.tensor([[0.0, 0.0, 6.0]] * b)
     lights = lights_from_config(SCENE_LIGHTS, batch=b)
-    img = shade(GBuffer(position=pos, normal=n, albedo=albedo.contiguous(), metallic=m.contiguous(), roughness=r.contiguous(), mask=mask), camera_position=cam, lights=lights)
+    img = shade(
+        GBuffer(
+            position=pos,
+            normal=n,
+            albedo=albedo.contiguous(),
+            metallic=m.contiguous(),
+            roughness=r.contiguous(),
+            mask=mask,
+        ),
+        camera_position=cam,
+        lights=lights,
+    )
     labels = [(4, 2 + i * size, f"metal {mi}") for i, mi in enumerate(metals)]
     labels += [(4 + j * size, 3 * size - 12, f"rough {ri}") for j, ri in enumerate(roughs)]
     to_png(tile(img, len(metals), len(roughs)), IMAGES / "shading_sphere_grid.png", labels)
@@ -161,10 +209,27 @@ def pictures() -> None:
     zero = torch.zeros(1, 1, size, size)
     cam = torch.tensor([[0.0, 0.0, 6.0]])
     lights = lights_from_config([SCENE_LIGHTS[0], SCENE_LIGHTS[2]])
-    imgs = [shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=zero, roughness=zero + 0.3, mask=mask), camera_position=cam, lights=lights, model=name)
-            for name in names]
-    to_png(tile(torch.cat(imgs), 1, len(names)), IMAGES / "shading_models.png",
-           [(4 + k * size, 2, name) for k, name in enumerate(names)])
+    imgs = [
+        shade(
+            GBuffer(
+                position=pos,
+                normal=n,
+                albedo=albedo,
+                metallic=zero,
+                roughness=zero + 0.3,
+                mask=mask,
+            ),
+            camera_position=cam,
+            lights=lights,
+            model=name,
+        )
+        for name in names
+    ]
+    to_png(
+        tile(torch.cat(imgs), 1, len(names)),
+        IMAGES / "shading_models.png",
+        [(4 + k * size, 2, name) for k, name in enumerate(names)],
+    )
 
     # 3. point vs spot vs directional light on a plane (y = 0), pinhole camera
     h, w = 192, 192
@@ -186,16 +251,45 @@ def pictures() -> None:
     zero = torch.zeros(1, 1, h, w)
     cams = eye.view(1, 3)
     setups = [
-        ("point", [{"type": "point", "position": [0.0, 0.8, 0.0], "intensity": 4.0,
-                    "range": 4.0}]),
-        ("spot", [{"type": "spot", "position": [0.0, 2.0, 0.0], "direction": [0.3, -1.0, 0.0],
-                   "intensity": 20.0, "inner_cone_angle": 0.25, "outer_cone_angle": 0.5}]),
-        ("directional", [{"type": "directional", "direction": [-1.0, -1.0, -0.5],
-                          "intensity": 2.0}]),
+        ("point", [{"type": "point", "position": [0.0, 0.8, 0.0], "intensity": 4.0, "range": 4.0}]),
+        (
+            "spot",
+            [
+                {
+                    "type": "spot",
+                    "position": [0.0, 2.0, 0.0],
+                    "direction": [0.3, -1.0, 0.0],
+                    "intensity": 20.0,
+                    "inner_cone_angle": 0.25,
+                    "outer_cone_angle": 0.5,
+                }
+            ],
+        ),
+        (
+            "directional",
+            [{"type": "directional", "direction": [-1.0, -1.0, -0.5], "intensity": 2.0}],
+        ),
     ]
-    imgs = [shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=zero, roughness=zero + 0.5, mask=mask), camera_position=cams, lights=lights_from_config(cfg)) for _, cfg in setups]
-    to_png(tile(torch.cat(imgs), 1, 3), IMAGES / "shading_lights.png",
-           [(4 + k * w, 2, name) for k, (name, _) in enumerate(setups)])
+    imgs = [
+        shade(
+            GBuffer(
+                position=pos,
+                normal=n,
+                albedo=albedo,
+                metallic=zero,
+                roughness=zero + 0.5,
+                mask=mask,
+            ),
+            camera_position=cams,
+            lights=lights_from_config(cfg),
+        )
+        for _, cfg in setups
+    ]
+    to_png(
+        tile(torch.cat(imgs), 1, 3),
+        IMAGES / "shading_lights.png",
+        [(4 + k * w, 2, name) for k, (name, _) in enumerate(setups)],
+    )
 
 
 def main() -> None:
@@ -228,8 +322,13 @@ def main() -> None:
         print(f"lights={count}: fwd {t_f * 1e3:.1f} ms, fwd+bwd {t_b * 1e3:.1f} ms", flush=True)
     per_chunk = max(1, LIGHT_CHUNK_ELEMENTS // (b * s * s))
     table1 = markdown_table(
-        ["point lights", "forward ms", "forward+backward ms", "forward ms / light",
-         "fwd+bwd / fwd"],
+        [
+            "point lights",
+            "forward ms",
+            "forward+backward ms",
+            "forward ms / light",
+            "fwd+bwd / fwd",
+        ],
         rows,
     )
 
@@ -241,18 +340,60 @@ def main() -> None:
         chunk = max(1, LIGHT_CHUNK_ELEMENTS // (batch * size * size))
         pos, n, albedo, metallic, rough, mask, cam = g
         with torch.no_grad():
-            a = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=metallic, roughness=rough, mask=mask), camera_position=cam, lights=lights, light_chunk=1)
-            c = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=metallic, roughness=rough, mask=mask), camera_position=cam, lights=lights)
+            a = shade(
+                GBuffer(
+                    position=pos,
+                    normal=n,
+                    albedo=albedo,
+                    metallic=metallic,
+                    roughness=rough,
+                    mask=mask,
+                ),
+                camera_position=cam,
+                lights=lights,
+                light_chunk=1,
+            )
+            c = shade(
+                GBuffer(
+                    position=pos,
+                    normal=n,
+                    albedo=albedo,
+                    metallic=metallic,
+                    roughness=rough,
+                    mask=mask,
+                ),
+                camera_position=cam,
+                lights=lights,
+            )
         diff = ((a - c).abs().max() / c.abs().max()).item()
         t_loop = timed(run_pass(g, lights, False, chunk=1), args.repeats)
         t_vec = timed(run_pass(g, lights, False), args.repeats)
-        rows2.append([f"{size}x{size}, batch {batch}", count, min(chunk, count), t_loop * 1e3,
-                      t_vec * 1e3, t_loop / t_vec, f"{diff:.1e}"])
-        print(f"{size}^2 x{batch}, {count} lights: loop {t_loop * 1e3:.1f} ms, "
-              f"tensor dim {t_vec * 1e3:.1f} ms", flush=True)
+        rows2.append(
+            [
+                f"{size}x{size}, batch {batch}",
+                count,
+                min(chunk, count),
+                t_loop * 1e3,
+                t_vec * 1e3,
+                t_loop / t_vec,
+                f"{diff:.1e}",
+            ]
+        )
+        print(
+            f"{size}^2 x{batch}, {count} lights: loop {t_loop * 1e3:.1f} ms, "
+            f"tensor dim {t_vec * 1e3:.1f} ms",
+            flush=True,
+        )
     table2 = markdown_table(
-        ["G-buffer", "point lights", "lights per chunk", "Python loop ms", "tensor dim ms",
-         "loop / tensor", "max rel. diff"],
+        [
+            "G-buffer",
+            "point lights",
+            "lights per chunk",
+            "Python loop ms",
+            "tensor dim ms",
+            "loop / tensor",
+            "max rel. diff",
+        ],
         rows2,
     )
 

@@ -9,11 +9,11 @@ from pathlib import Path
 import pytest
 import torch
 
+from torchraster.gbuffer import GBuffer
 from torchraster.shading import MODELS, Lights, lights_from_config, shade
 from torchraster.shading.lighting import dfg_lut, env_brdf
 from torchraster.shading.lights import DirectionalLights
 from torchraster.shading.models import Surface
-from torchraster.gbuffer import GBuffer
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_brdf import directional_albedo, heitz_v, walter_ggx  # noqa: E402
@@ -25,7 +25,8 @@ CAM = (0.0, 0.0, 10.0)
 def sphere(h: int = 32, w: int = 32, b: int = 1, dtype: torch.dtype = F64):
     """Unit sphere seen along -z: analytic world positions, normals (B, 3, H, W) and mask."""
     y, x = torch.meshgrid(
-        torch.linspace(1, -1, h, dtype=dtype), torch.linspace(-1, 1, w, dtype=dtype),
+        torch.linspace(1, -1, h, dtype=dtype),
+        torch.linspace(-1, 1, w, dtype=dtype),
         indexing="ij",
     )
     r2 = x * x + y * y
@@ -50,9 +51,24 @@ def test_lambert_sphere_matches_closed_form() -> None:
     zero = torch.zeros(1, 1, 32, 32, dtype=F64)
     d = torch.tensor([-1.0, -2.0, -2.0], dtype=F64)
     lights = lights_from_config(
-        [{"type": "directional", "direction": d.tolist(), "intensity": 3.0,
-          "color": [1.0, 0.9, 0.8]}], dtype=F64)
-    out = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=zero, roughness=zero + 0.5, mask=mask), camera_position=cam(), lights=lights, model=lambert)
+        [
+            {
+                "type": "directional",
+                "direction": d.tolist(),
+                "intensity": 3.0,
+                "color": [1.0, 0.9, 0.8],
+            }
+        ],
+        dtype=F64,
+    )
+    out = shade(
+        GBuffer(
+            position=pos, normal=n, albedo=albedo, metallic=zero, roughness=zero + 0.5, mask=mask
+        ),
+        camera_position=cam(),
+        lights=lights,
+        model=lambert,
+    )
     l = (-d / d.norm()).view(1, 3, 1, 1)
     e = 3.0 * torch.tensor([1.0, 0.9, 0.8], dtype=F64).view(1, 3, 1, 1)
     ref = albedo / math.pi * e * (n * l).sum(1, keepdim=True).clamp_min(0) * mask
@@ -93,13 +109,28 @@ def reference_pixel(p, nrm, albedo, metallic, rough, light):
 
 LIGHTS = [
     {"type": "directional", "direction": [-1.0, -1.0, -1.0], "intensity": 2.0},
-    {"type": "directional", "direction": [1.0, 0.0, -0.5], "intensity": 1.0,
-     "color": [0.2, 0.4, 1.0]},
-    {"type": "point", "position": [1.5, 1.0, 2.0], "intensity": 8.0, "range": 4.0,
-     "color": [1.0, 0.5, 0.2]},
+    {
+        "type": "directional",
+        "direction": [1.0, 0.0, -0.5],
+        "intensity": 1.0,
+        "color": [0.2, 0.4, 1.0],
+    },
+    {
+        "type": "point",
+        "position": [1.5, 1.0, 2.0],
+        "intensity": 8.0,
+        "range": 4.0,
+        "color": [1.0, 0.5, 0.2],
+    },
     {"type": "point", "position": [-1.0, 0.0, 1.5], "intensity": 3.0},
-    {"type": "spot", "position": [0.0, 2.5, 1.5], "direction": [0.0, -1.0, -0.5],
-     "intensity": 20.0, "inner_cone_angle": 0.2, "outer_cone_angle": 0.6},
+    {
+        "type": "spot",
+        "position": [0.0, 2.5, 1.5],
+        "direction": [0.0, -1.0, -0.5],
+        "intensity": 20.0,
+        "inner_cone_angle": 0.2,
+        "outer_cone_angle": 0.6,
+    },
 ]
 
 
@@ -110,7 +141,13 @@ def test_cook_torrance_sphere_matches_reference() -> None:
     metallic = torch.rand(1, 1, 16, 16, generator=g, dtype=F64)
     rough = torch.rand(1, 1, 16, 16, generator=g, dtype=F64) * 0.9 + 0.1
     lights = lights_from_config(LIGHTS, dtype=F64)
-    out = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=metallic, roughness=rough, mask=mask), camera_position=cam(), lights=lights)
+    out = shade(
+        GBuffer(
+            position=pos, normal=n, albedo=albedo, metallic=metallic, roughness=rough, mask=mask
+        ),
+        camera_position=cam(),
+        lights=lights,
+    )
     checked = 0
     for i in range(16):
         for j in range(16):
@@ -120,8 +157,14 @@ def test_cook_torrance_sphere_matches_reference() -> None:
             total = torch.zeros(3, dtype=F64)
             ok = True
             for light in LIGHTS:
-                c = reference_pixel(pos[0, :, i, j], n[0, :, i, j], albedo[0, :, i, j],
-                                    metallic[0, 0, i, j].item(), rough[0, 0, i, j].item(), light)
+                c = reference_pixel(
+                    pos[0, :, i, j],
+                    n[0, :, i, j],
+                    albedo[0, :, i, j],
+                    metallic[0, 0, i, j].item(),
+                    rough[0, 0, i, j].item(),
+                    light,
+                )
                 if c is None:
                     ok = False  # n.v <= 0: our pass shades it as grazing; skip
                     break
@@ -138,13 +181,22 @@ def test_ambient_matches_brute_force_directional_albedo() -> None:
     c = 0.7
     lights = lights_from_config([{"type": "ambient", "color": [c, c, c]}], dtype=F64)
     thetas = [0.0, 0.6, 1.2]
-    for rough, metal, alb in [(0.045, 1.0, 1.0), (0.3, 1.0, 0.9), (0.5, 0.0, 0.8),
-                              (1.0, 0.5, 0.5)]:
+    for rough, metal, alb in [(0.045, 1.0, 1.0), (0.3, 1.0, 0.9), (0.5, 0.0, 0.8), (1.0, 0.5, 0.5)]:
         n = torch.tensor([[math.sin(t), 0.0, math.cos(t)] for t in thetas], dtype=F64)
         n = n.T.reshape(1, 3, 1, len(thetas))
         pos = torch.zeros_like(n)
         one = torch.ones(1, 1, 1, len(thetas), dtype=F64)
-        out = shade(GBuffer(position=pos, normal=n, albedo=alb * torch.ones_like(n), metallic=metal * one, roughness=rough * one), camera_position=cam(), lights=lights)
+        out = shade(
+            GBuffer(
+                position=pos,
+                normal=n,
+                albedo=alb * torch.ones_like(n),
+                metallic=metal * one,
+                roughness=rough * one,
+            ),
+            camera_position=cam(),
+            lights=lights,
+        )
         for k, t in enumerate(thetas):
             ref = c * directional_albedo(t, rough, metal, alb, n_theta=300, n_phi=48)
             assert out[0, 0, 0, k].item() == pytest.approx(ref, rel=0.01), (rough, metal, t)
@@ -159,23 +211,86 @@ def test_ao_emissive_mask_and_empty_lights() -> None:
     direct = lights_from_config(LIGHTS[:1], dtype=F64)
     both = lights_from_config(LIGHTS[:1] + [{"type": "ambient", "color": [1, 1, 1]}], dtype=F64)
     ao0, ao1 = torch.zeros_like(m), torch.ones_like(m)
-    d_only = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=r, mask=mask), camera_position=cam(), lights=direct)
-    torch.testing.assert_close(shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=r, ao=ao0, mask=mask), camera_position=cam(), lights=direct), d_only)
-    torch.testing.assert_close(shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=r, ao=ao0, mask=mask), camera_position=cam(), lights=both), d_only)
-    full = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=r, ao=ao1, mask=mask), camera_position=cam(), lights=both)
-    half = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=r, ao=ao1 * 0.5, mask=mask), camera_position=cam(), lights=both)
+    d_only = shade(
+        GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=r, mask=mask),
+        camera_position=cam(),
+        lights=direct,
+    )
+    torch.testing.assert_close(
+        shade(
+            GBuffer(
+                position=pos, normal=n, albedo=albedo, metallic=m, roughness=r, ao=ao0, mask=mask
+            ),
+            camera_position=cam(),
+            lights=direct,
+        ),
+        d_only,
+    )
+    torch.testing.assert_close(
+        shade(
+            GBuffer(
+                position=pos, normal=n, albedo=albedo, metallic=m, roughness=r, ao=ao0, mask=mask
+            ),
+            camera_position=cam(),
+            lights=both,
+        ),
+        d_only,
+    )
+    full = shade(
+        GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=r, ao=ao1, mask=mask),
+        camera_position=cam(),
+        lights=both,
+    )
+    half = shade(
+        GBuffer(
+            position=pos, normal=n, albedo=albedo, metallic=m, roughness=r, ao=ao1 * 0.5, mask=mask
+        ),
+        camera_position=cam(),
+        lights=both,
+    )
     torch.testing.assert_close(half - d_only, 0.5 * (full - d_only))
     assert ((full - d_only)[mask.expand_as(full)] > 0).all()
-    with_e = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=r, emissive=emissive, mask=mask), camera_position=cam(), lights=direct)
+    with_e = shade(
+        GBuffer(
+            position=pos,
+            normal=n,
+            albedo=albedo,
+            metallic=m,
+            roughness=r,
+            emissive=emissive,
+            mask=mask,
+        ),
+        camera_position=cam(),
+        lights=direct,
+    )
     torch.testing.assert_close(with_e, d_only + emissive * mask)
     # no lights at all: only emission; masked pixels stay 0 even if the G-buffer is NaN there
     bad = pos.clone()
     bad[~mask.expand_as(bad)] = math.nan
-    out = shade(GBuffer(position=bad, normal=n, albedo=albedo, metallic=m, roughness=r, emissive=emissive, mask=mask), camera_position=cam(), lights=Lights())
+    out = shade(
+        GBuffer(
+            position=bad,
+            normal=n,
+            albedo=albedo,
+            metallic=m,
+            roughness=r,
+            emissive=emissive,
+            mask=mask,
+        ),
+        camera_position=cam(),
+        lights=Lights(),
+    )
     torch.testing.assert_close(out, emissive * mask)
-    empty = DirectionalLights(torch.zeros(1, 0, 3, dtype=F64), torch.zeros(1, 0, 3, dtype=F64),
-                              torch.zeros(1, 0, dtype=F64))
-    out = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=r, mask=mask), camera_position=cam(), lights=Lights(directional=empty))
+    empty = DirectionalLights(
+        torch.zeros(1, 0, 3, dtype=F64),
+        torch.zeros(1, 0, 3, dtype=F64),
+        torch.zeros(1, 0, dtype=F64),
+    )
+    out = shade(
+        GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=r, mask=mask),
+        camera_position=cam(),
+        lights=Lights(directional=empty),
+    )
     assert (out == 0).all()
 
 
@@ -185,16 +300,30 @@ def test_ibl_hook() -> None:
     seen = {}
 
     def ibl(nn, vv, a, mm, rr):
-        seen["unit"] = bool(((nn.norm(dim=1) - 1).abs()[mask[:, 0]] < 1e-12).all()
-                            and ((vv.norm(dim=1) - 1).abs() < 1e-12).all())
+        seen["unit"] = bool(
+            ((nn.norm(dim=1) - 1).abs()[mask[:, 0]] < 1e-12).all()
+            and ((vv.norm(dim=1) - 1).abs() < 1e-12).all()
+        )
         return a * 2.0
 
     ao = torch.full_like(m, 0.25)
-    out = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=m + 0.5, ao=ao, mask=mask), camera_position=cam(), lights=Lights(), ibl=ibl)
+    out = shade(
+        GBuffer(
+            position=pos, normal=n, albedo=albedo, metallic=m, roughness=m + 0.5, ao=ao, mask=mask
+        ),
+        camera_position=cam(),
+        lights=Lights(),
+        ibl=ibl,
+    )
     assert seen["unit"]
     torch.testing.assert_close(out, albedo * 2.0 * 0.25 * mask)
     with pytest.raises(ValueError, match="ibl"):
-        shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=m, mask=mask), camera_position=cam(), lights=Lights(), ibl=lambda *a: torch.zeros(1, 3, 4, 4, dtype=F64))
+        shade(
+            GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=m, mask=mask),
+            camera_position=cam(),
+            lights=Lights(),
+            ibl=lambda *a: torch.zeros(1, 3, 4, 4, dtype=F64),
+        )
 
 
 def test_chunking_and_checkpoint_agree() -> None:
@@ -204,9 +333,23 @@ def test_chunking_and_checkpoint_agree() -> None:
     albedo = torch.rand(1, 3, 12, 12, generator=g, dtype=F64)
     grads, outs = [], []
     for chunk, ckpt in [(None, None), (1, False), (2, True), (4, None)]:
-        rough = (torch.rand(1, 1, 12, 12, generator=torch.Generator().manual_seed(8),
-                            dtype=F64)).requires_grad_()
-        out = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=rough * 0.5, roughness=rough, mask=mask), camera_position=cam(), lights=lights, light_chunk=chunk, checkpoint_chunks=ckpt)
+        rough = (
+            torch.rand(1, 1, 12, 12, generator=torch.Generator().manual_seed(8), dtype=F64)
+        ).requires_grad_()
+        out = shade(
+            GBuffer(
+                position=pos,
+                normal=n,
+                albedo=albedo,
+                metallic=rough * 0.5,
+                roughness=rough,
+                mask=mask,
+            ),
+            camera_position=cam(),
+            lights=lights,
+            light_chunk=chunk,
+            checkpoint_chunks=ckpt,
+        )
         out.square().sum().backward()
         outs.append(out.detach())
         grads.append(rough.grad)
@@ -221,10 +364,20 @@ def test_models_by_name_finite(model: str) -> None:
     albedo = torch.full_like(n, 0.6)
     m = torch.zeros(1, 1, 16, 16)
     lights = lights_from_config(LIGHTS)
-    out = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=m + 0.3, mask=mask), camera_position=cam(dtype=torch.float32), lights=lights, model=model)
+    out = shade(
+        GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=m + 0.3, mask=mask),
+        camera_position=cam(dtype=torch.float32),
+        lights=lights,
+        model=model,
+    )
     assert torch.isfinite(out).all() and out.max() > 0
     # by name == by callable
-    same = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=m + 0.3, mask=mask), camera_position=cam(dtype=torch.float32), lights=lights, model=MODELS[model])
+    same = shade(
+        GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=m + 0.3, mask=mask),
+        camera_position=cam(dtype=torch.float32),
+        lights=lights,
+        model=MODELS[model],
+    )
     torch.testing.assert_close(out, same)
 
 
@@ -242,14 +395,31 @@ def test_gradcheck_pass() -> None:
     g = torch.Generator().manual_seed(9)
     pos, nrm, albedo, metal, rough = small_gbuffer(g)
     lights = lights_from_config(
-        LIGHTS[:1] + LIGHTS[2:3]
-        + [{"type": "spot", "position": [0, 0, 2], "direction": [0, 0, -1], "intensity": 5.0,
-            "inner_cone_angle": 0.1, "outer_cone_angle": 1.2},
-           {"type": "ambient", "color": [0.3, 0.3, 0.3]}], dtype=F64)
+        LIGHTS[:1]
+        + LIGHTS[2:3]
+        + [
+            {
+                "type": "spot",
+                "position": [0, 0, 2],
+                "direction": [0, 0, -1],
+                "intensity": 5.0,
+                "inner_cone_angle": 0.1,
+                "outer_cone_angle": 1.2,
+            },
+            {"type": "ambient", "color": [0.3, 0.3, 0.3]},
+        ],
+        dtype=F64,
+    )
     ao = torch.full((1, 1, 3, 3), 0.7, dtype=F64)
 
     def fn(albedo, metal, rough, nrm):
-        return shade(GBuffer(position=pos, normal=nrm, albedo=albedo, metallic=metal, roughness=rough, ao=ao), camera_position=cam(), lights=lights)
+        return shade(
+            GBuffer(
+                position=pos, normal=nrm, albedo=albedo, metallic=metal, roughness=rough, ao=ao
+            ),
+            camera_position=cam(),
+            lights=lights,
+        )
 
     args = tuple(t.clone().requires_grad_() for t in (albedo, metal, rough, nrm))
     assert torch.autograd.gradcheck(fn, args)
@@ -262,17 +432,22 @@ def test_hostile_gbuffer_finite() -> None:
     nrm = torch.tensor([[0, 0, 0], [0, 0, -1], [1, 0, 0], [0, 0, 1.0]]).T.reshape(1, 3, 1, 4)
     nrm = nrm.repeat(1, 1, 2, 1)
     rough = torch.tensor([0.0, 1.0]).view(1, 1, 2, 1).repeat(1, 1, 1, 4)
-    lights = lights_from_config([
-        {"type": "point", "position": [0, 0, 0], "intensity": 1e6},
-        {"type": "point", "position": [0, 0, 1], "intensity": 0.0, "color": [0, 0, 0]},
-        {"type": "spot", "position": [0, 0, 1], "direction": [0, 0, -1], "intensity": 1e6},
-        {"type": "directional", "direction": [0, 0, -1], "intensity": 1e6},
-        {"type": "ambient", "color": [1, 1, 1]},
-    ])
-    args = [t.clone().requires_grad_() for t in (pos, nrm, torch.full_like(pos, 0.5),
-                                                 torch.full_like(rough, 0.5), rough)]
-    gb = GBuffer(**dict(zip(["position", "normal", "albedo", "metallic", "roughness"], args,
-                            strict=True)))
+    lights = lights_from_config(
+        [
+            {"type": "point", "position": [0, 0, 0], "intensity": 1e6},
+            {"type": "point", "position": [0, 0, 1], "intensity": 0.0, "color": [0, 0, 0]},
+            {"type": "spot", "position": [0, 0, 1], "direction": [0, 0, -1], "intensity": 1e6},
+            {"type": "directional", "direction": [0, 0, -1], "intensity": 1e6},
+            {"type": "ambient", "color": [1, 1, 1]},
+        ]
+    )
+    args = [
+        t.clone().requires_grad_()
+        for t in (pos, nrm, torch.full_like(pos, 0.5), torch.full_like(rough, 0.5), rough)
+    ]
+    gb = GBuffer(
+        **dict(zip(["position", "normal", "albedo", "metallic", "roughness"], args, strict=True))
+    )
     out = shade(gb, camera_position=torch.tensor([[0.0, 0, 5]]), lights=lights)
     assert torch.isfinite(out).all()
     out.sum().backward()
@@ -287,11 +462,24 @@ def test_low_precision_pass(dtype: torch.dtype) -> None:
     m = torch.linspace(0, 1, 24).view(1, 1, 1, 24).expand(1, 1, 24, 24).contiguous()
     r = torch.linspace(0, 1, 24).view(1, 1, 24, 1).expand(1, 1, 24, 24).contiguous()
     lights = lights_from_config(LIGHTS + [{"type": "ambient", "color": [0.2, 0.2, 0.2]}])
-    ref = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=r, mask=mask), camera_position=cam(dtype=torch.float32), lights=lights)
+    ref = shade(
+        GBuffer(position=pos, normal=n, albedo=albedo, metallic=m, roughness=r, mask=mask),
+        camera_position=cam(dtype=torch.float32),
+        lights=lights,
+    )
     low16 = [t.to(dtype) for t in (pos, n, albedo, m, r)]
-    low = shade(GBuffer(position=low16[0], normal=low16[1], albedo=low16[2], metallic=low16[3],
-                        roughness=low16[4], mask=mask),
-                camera_position=cam(dtype=dtype), lights=lights)
+    low = shade(
+        GBuffer(
+            position=low16[0],
+            normal=low16[1],
+            albedo=low16[2],
+            metallic=low16[3],
+            roughness=low16[4],
+            mask=mask,
+        ),
+        camera_position=cam(dtype=dtype),
+        lights=lights,
+    )
     assert low.dtype == dtype and torch.isfinite(low).all()
     err = (low.float() - ref).abs() / ref.abs().clamp_min(0.05)
     assert err.median().item() < 0.02  # inputs rounded to 8 (bf16) / 11 (fp16) bits
@@ -314,13 +502,16 @@ def test_bad_inputs() -> None:
     with pytest.raises(TypeError, match="lights"):
         shade(gb, camera_position=cam(), lights=[{"type": "ambient"}])
     with pytest.raises(ValueError, match="batch size"):
-        shade(gb, camera_position=cam(), lights=lights_from_config(LIGHTS[:1], batch=3,
-                                                                   dtype=F64))
+        shade(gb, camera_position=cam(), lights=lights_from_config(LIGHTS[:1], batch=3, dtype=F64))
     with pytest.raises(ValueError, match="model"):
         shade(gb, camera_position=cam(), model="phong")
     with pytest.raises(ValueError, match="model"):
-        shade(gb, camera_position=cam(), lights=lights_from_config(LIGHTS[:1], dtype=F64),
-              model=lambda n, v, l, s: torch.zeros(1, 3, 4, 4))
+        shade(
+            gb,
+            camera_position=cam(),
+            lights=lights_from_config(LIGHTS[:1], dtype=F64),
+            model=lambda n, v, l, s: torch.zeros(1, 3, 4, 4),
+        )
     with pytest.raises(TypeError, match="metallic"):
         GBuffer(position=pos, normal=n, albedo=a, metallic=m.long(), roughness=m)
     with pytest.raises(TypeError):  # keyword-only after the G-buffer
@@ -358,11 +549,12 @@ def test_artistic_models_closed_forms() -> None:
         torch.testing.assert_close(half_lambert(z, z, l, s), albedo / math.pi * want)
     # Blinn-Phong at the mirror direction: kd / pi + f0 (s + 8) / (8 pi), s = 2 / a^2 - 2
     sh = 2 / 0.5**4 - 2
-    torch.testing.assert_close(blinn_phong(z, z, z, s),
-                               albedo / math.pi + 0.04 * (sh + 8) / (8 * math.pi))
+    torch.testing.assert_close(
+        blinn_phong(z, z, z, s), albedo / math.pi + 0.04 * (sh + 8) / (8 * math.pi)
+    )
     # toon: diffuse takes TOON_BANDS + 1 levels only
     ang = torch.linspace(0, math.pi, 50, dtype=F64)
     l = torch.stack([ang.sin(), torch.zeros_like(ang), ang.cos()]).view(1, 3, 1, 50)
     v = torch.tensor([1.0, 0.0, 0.0], dtype=F64).view(1, 3, 1, 1)  # no highlight
-    levels = (toon(z, v, l, Surface(albedo, zero, zero + 0.1))[0, 0, 0] * math.pi / 0.2)
+    levels = toon(z, v, l, Surface(albedo, zero, zero + 0.1))[0, 0, 0] * math.pi / 0.2
     assert set(torch.round(levels * TOON_BANDS).tolist()) == set(range(TOON_BANDS + 1))

@@ -100,7 +100,10 @@ def blinn_phong(n: torch.Tensor, v: torch.Tensor, l: torch.Tensor, surface: Surf
     No Fresnel or visibility term.
     """
     lobe, _, _ = _blinn_phong_lobe(n, v, l, surface.roughness)
-    f = diffuse_color(surface.albedo, surface.metallic) / math.pi + specular_f0(surface.albedo, surface.metallic) * lobe
+    f = (
+        diffuse_color(surface.albedo, surface.metallic) / math.pi
+        + specular_f0(surface.albedo, surface.metallic) * lobe
+    )
     return f * dot(n, l).clamp(0.0, 1.0)
 
 
