@@ -29,13 +29,12 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ..numerics import compute_dtype, finish_low_precision
 from .blur import (
     check_image,
-    compute_dtype,
     gaussian_blur,
     per_sample,
     separable_filter,
-    to_output_dtype,
 )
 
 #: Brightness floor of the bright-pass division (linear units): below it the contribution
@@ -168,9 +167,9 @@ class Bloom(nn.Module):
         if not self.enabled:
             return x
         x = check_image("x", x)
-        xc = x.to(compute_dtype(x.dtype))
+        xc = x.to(compute_dtype(x))
         intensity = per_sample("intensity", self.intensity, xc)
         levels = min(self.levels, max_levels(*x.shape[-2:]))
         bright = bright_pass(xc, self.threshold, self.knee)
         glow = bloom_levels(bright, levels, self.radius, self.karis)
-        return to_output_dtype(xc + intensity * glow / levels, x.dtype)
+        return finish_low_precision(xc + intensity * glow / levels, x.dtype)

@@ -19,6 +19,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .._validate import check_tensor
+from ..numerics import compute_dtype, finish_low_precision
 
 #: Truncate the Gaussian at this many sigmas (kernel radius = ceil(TRUNCATE * sigma)); the
 #: tail beyond 3 sigma holds 0.27 % of the mass and the kernel is renormalized to sum to 1.
@@ -28,26 +29,6 @@ TRUNCATE = 3.0
 #: (clamp-to-edge, like a GPU sampler) works for any image size; ``reflect`` needs
 #: H, W > radius.
 BORDERS = ("replicate", "reflect", "constant", "circular")
-
-
-def compute_dtype(dtype: torch.dtype) -> torch.dtype:
-    """Dtype the post modules compute in: float16/bfloat16 are promoted to float32.
-
-    Tone curves square HDR values (overflow past 256 in float16) and the filters sum many
-    taps, so half-precision inputs are processed in float32 and the result is cast back to
-    the input dtype once at the end (the same policy as kornia's ``gaussian_blur2d``).
-    """
-    return torch.float32 if dtype in (torch.float16, torch.bfloat16) else dtype
-
-
-def to_output_dtype(y: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-    """Cast a float32/64 result back to the input ``dtype``; half-precision results are
-    saturated to that dtype's largest finite value first (e.g. exposing 6e4 by +3 EV in
-    float16 gives 65504, not inf)."""
-    if dtype in (torch.float16, torch.bfloat16):
-        big = torch.finfo(dtype).max
-        return y.clamp(-big, big).to(dtype)
-    return y.to(dtype)
 
 
 def check_image(name: str, x: object, channels: int | None = None) -> torch.Tensor:
@@ -121,8 +102,8 @@ def gaussian_blur(x: torch.Tensor, sigma: float, border: str = "replicate") -> t
         raise ValueError(f"border: expected one of {BORDERS}, got {border!r}")
     if sigma <= 0:
         return x
-    k = gaussian_kernel1d(float(sigma), device=x.device, dtype=compute_dtype(x.dtype))
-    return to_output_dtype(separable_filter(x.to(k.dtype), k, k, border), x.dtype)
+    k = gaussian_kernel1d(float(sigma), device=x.device, dtype=compute_dtype(x))
+    return finish_low_precision(separable_filter(x.to(k.dtype), k, k, border), x.dtype)
 
 
 class GaussianBlur(nn.Module):

@@ -34,7 +34,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from .._validate import check_tensor
-from .blur import check_image, compute_dtype, gaussian_blur, per_sample, to_output_dtype
+from ..numerics import compute_dtype, finish_low_precision
+from .blur import check_image, gaussian_blur, per_sample
 
 #: Depth floor (metres) before dividing by depth: 1 micrometre, far below any near plane.
 DEPTH_FLOOR = 1e-6
@@ -174,7 +175,7 @@ class DepthOfField(nn.Module):
             return x
         x = check_image("x", x)
         depth = check_tensor("depth", depth, (x.shape[0], 1, x.shape[2], x.shape[3]), floating=True)
-        dt = compute_dtype(x.dtype)
+        dt = compute_dtype(x)
         coc = circle_of_confusion(
             depth.to(dt),
             self.focus_distance if focus_distance is None else focus_distance,
@@ -182,4 +183,5 @@ class DepthOfField(nn.Module):
             self.f_number if f_number is None else f_number,
             self.sensor_width_mm,
         )
-        return to_output_dtype(depth_of_field(x.to(dt), coc, self.max_coc, self.levels), x.dtype)
+        out = depth_of_field(x.to(dt), coc, self.max_coc, self.levels)
+        return finish_low_precision(out, x.dtype)

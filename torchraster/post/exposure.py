@@ -23,7 +23,8 @@ import math
 import torch
 from torch import nn
 
-from .blur import check_image, compute_dtype, per_sample, to_output_dtype
+from ..numerics import compute_dtype, finish_low_precision
+from .blur import check_image, per_sample
 
 #: Rec. 709 / sRGB luminance weights.
 REC709 = (0.2126, 0.7152, 0.0722)
@@ -61,7 +62,7 @@ def metered_log2_luminance(
             "percentile_low, percentile_high: expected 0 <= low < high <= 1, "
             f"got {percentile_low}, {percentile_high}"
         )
-    lum = luminance(x.to(compute_dtype(x.dtype))).clamp(min=0.0)
+    lum = luminance(x.to(compute_dtype(x))).clamp(min=0.0)
     logl = torch.log2(lum + LUM_FLOOR).flatten(1)  # (B, N)
     if metering == "average":
         return logl.mean(dim=1)
@@ -133,7 +134,7 @@ class AutoExposure(nn.Module):
         if not self.enabled:
             return x
         x = check_image("x", x, 3)
-        xc = x.to(compute_dtype(x.dtype))
+        xc = x.to(compute_dtype(x))
         measured = metered_log2_luminance(
             xc, self.metering, self.percentile_low, self.percentile_high
         )
@@ -150,4 +151,4 @@ class AutoExposure(nn.Module):
         self.adapted_log2_lum = adapted.detach()
         ev = self.target_ev(adapted, xc)
         self.last_ev = ev.detach()
-        return to_output_dtype(xc * torch.exp2(ev).reshape(-1, 1, 1, 1), x.dtype)
+        return finish_low_precision(xc * torch.exp2(ev).reshape(-1, 1, 1, 1), x.dtype)

@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .._validate import check_tensor
-from .blur import compute_dtype
+from ..numerics import compute_dtype
 
 #: Depth substituted for empty pixels (+inf/<=0) before bilinear depth lookups (inf * 0
 #: weights would give NaN); any sample is in front of it, and its range weight is ~0.
@@ -211,7 +211,7 @@ class SSAO(nn.Module):
             raise ValueError(f"intrinsics: expected a (4,) or ({b}, 4) tensor of fx, fy, cx, cy")
         if not bool(torch.isfinite(intrinsics).all()) or bool((intrinsics[..., :2] == 0).any()):
             raise ValueError("intrinsics: must be finite with non-zero fx, fy")
-        dt = compute_dtype(depth.dtype)
+        dt = compute_dtype(depth)
         ao = ssao(
             depth.to(dt), normals.to(dt), intrinsics.to(device=depth.device, dtype=dt),
             self.radius, self.samples, self.bias, self.softness, self.blur,

@@ -23,7 +23,8 @@ import kornia
 import torch
 from torch import nn
 
-from .blur import check_image, compute_dtype, per_sample, to_output_dtype
+from ..numerics import compute_dtype, finish_low_precision
+from .blur import check_image, per_sample
 
 CURVES = ("linear", "reinhard", "reinhard_extended", "aces", "hable")
 
@@ -50,7 +51,7 @@ def tone_curve(x: torch.Tensor, curve: str = "aces", white: float = 4.0) -> torc
     if curve == "reinhard_extended" and not white > 0:
         raise ValueError(f"white: expected a positive white point, got {white}")
     out_dtype = x.dtype
-    x = x.to(compute_dtype(x.dtype)).clamp(min=0.0)
+    x = x.to(compute_dtype(x)).clamp(min=0.0)
     if curve == "linear":
         y = x.clamp(max=1.0)
     elif curve == "reinhard":
@@ -74,7 +75,7 @@ def tone_curve(x: torch.Tensor, curve: str = "aces", white: float = 4.0) -> torc
         den = s * (a * s + b * t) + d * f * t * t
         white_scale = 1.0 / float(_hable_partial(torch.tensor(HABLE_WHITE, dtype=torch.float64)))
         y = ((num / den - e / f) * white_scale).clamp(0.0, 1.0)
-    return to_output_dtype(y, out_dtype)
+    return finish_low_precision(y, out_dtype)
 
 
 class Exposure(nn.Module):
@@ -92,8 +93,8 @@ class Exposure(nn.Module):
         if not self.enabled:
             return x
         x = check_image("x", x)
-        ev_t = per_sample("ev", self.ev if ev is None else ev, x.to(compute_dtype(x.dtype)))
-        return to_output_dtype(x.to(ev_t.dtype) * torch.exp2(ev_t), x.dtype)
+        ev_t = per_sample("ev", self.ev if ev is None else ev, x.to(compute_dtype(x)))
+        return finish_low_precision(x.to(ev_t.dtype) * torch.exp2(ev_t), x.dtype)
 
 
 class ToneMap(nn.Module):
@@ -120,8 +121,8 @@ def encode_srgb(x: torch.Tensor) -> torch.Tensor:
     """
     x = check_image("x", x, 3)
     out_dtype = x.dtype
-    y = kornia.color.linear_rgb_to_rgb(x.to(compute_dtype(x.dtype)).clamp(0.0, 1.0))
-    return to_output_dtype(y, out_dtype)
+    y = kornia.color.linear_rgb_to_rgb(x.to(compute_dtype(x)).clamp(0.0, 1.0))
+    return finish_low_precision(y, out_dtype)
 
 
 class EncodeSRGB(nn.Module):
