@@ -558,3 +558,34 @@ def test_artistic_models_closed_forms() -> None:
     v = torch.tensor([1.0, 0.0, 0.0], dtype=F64).view(1, 3, 1, 1)  # no highlight
     levels = toon(z, v, l, Surface(albedo, zero, zero + 0.1))[0, 0, 0] * math.pi / 0.2
     assert set(torch.round(levels * TOON_BANDS).tolist()) == set(range(TOON_BANDS + 1))
+
+
+def test_visibility_hook_scales_each_light() -> None:
+    pos, n, mask = sphere(8, 8)
+    gb = GBuffer(position=pos, normal=n, albedo=torch.full_like(n, 0.5),
+                 metallic=torch.zeros(1, 1, 8, 8, dtype=F64),
+                 roughness=torch.full((1, 1, 8, 8), 0.5, dtype=F64), mask=mask)
+    two = [{"type": "point", "position": [1, 1, 3], "intensity": 4.0},
+           {"type": "point", "position": [-1, 0, 3], "intensity": 2.0}]
+    full = shade(gb, camera_position=cam(), lights=lights_from_config(two, dtype=F64))
+    first = shade(gb, camera_position=cam(), lights=lights_from_config(two[:1], dtype=F64))
+    calls = []
+
+    def second_in_shadow(kind: str, sl: slice) -> torch.Tensor:
+        calls.append((kind, sl))
+        vis = torch.ones(1, 2, 1, 8, 8, dtype=F64)[:, sl]
+        vis[:, -1] = 0.0 if sl.stop == 2 else 1.0
+        return vis
+
+    for chunk in (None, 1):
+        out = shade(gb, camera_position=cam(), lights=lights_from_config(two, dtype=F64),
+                    visibility=second_in_shadow, light_chunk=chunk)
+        torch.testing.assert_close(out, first)
+    assert ("point", slice(0, 1)) in calls and ("point", slice(1, 2)) in calls
+    half = shade(gb, camera_position=cam(), lights=lights_from_config(two, dtype=F64),
+                 visibility=lambda kind, sl: torch.full((1, sl.stop - sl.start, 1, 8, 8), 0.5,
+                                                        dtype=F64))
+    torch.testing.assert_close(half, full * 0.5)
+    with pytest.raises(ValueError, match="visibility"):
+        shade(gb, camera_position=cam(), lights=lights_from_config(two, dtype=F64),
+              visibility=lambda kind, sl: torch.ones(1, 3, 1, 8, 8, dtype=F64))

@@ -59,6 +59,11 @@ LIGHT_CHUNK_ELEMENTS: int = 2**22
 DFG_LUT_SIZE: int = 32
 DFG_LUT_SAMPLES: int = 96
 
+#: ``visibility(kind, lights_slice) -> (B, L, 1, H, W) | None``: the fraction of each light
+#: of ``kind`` ("directional", "point" or "spot") in ``lights_slice`` that reaches each
+#: pixel (shadows); None = all of it.
+VisibilityHook = Callable[[str, slice], "torch.Tensor | None"]
+
 IBLHook = Callable[
     [torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor
 ]
@@ -96,8 +101,12 @@ def _direct(
     n: torch.Tensor,
     v: torch.Tensor,
     surface: Surface,
+    visibility: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Sum over this chunk of lights of ``model(n, v, l) * E``: ``(B, 3, H, W)``."""
+    """Sum over this chunk of lights of ``model(n, v, l) * E * visibility``: ``(B, 3, H, W)``.
+
+    ``visibility``: ``(B, L_chunk, 1, H, W)`` light visibility (shadows) or None (= 1).
+    """
     if kind is DirectionalLights:
         l, e = directional_incidence(lights)  # type: ignore[arg-type]
     elif kind is PointLights:
@@ -110,6 +119,8 @@ def _direct(
             f"model: expected a (B, L, 3, H, W) result for l of shape {tuple(l.shape)}, "
             f"got {tuple(out.shape)}"
         )
+    if visibility is not None:
+        e = e * visibility
     return (out * e).sum(dim=1)
 
 
@@ -120,6 +131,7 @@ def shade(
     lights: Lights | None = None,
     model: str | ShadingModel = "cook_torrance",
     ibl: IBLHook | None = None,
+    visibility: VisibilityHook | None = None,
     light_chunk: int | None = None,
     checkpoint_chunks: bool | None = None,
 ) -> torch.Tensor:
@@ -140,6 +152,10 @@ def shade(
             from an environment (before AO; unit ``n`` and ``v`` (towards the eye)
             ``(B, 3, H, W)``), e.g. ``lambda n, v, a, m, r: shade_ibl(n, v, a, m, r,
             None, env)``.
+        visibility: optional ``visibility(kind, lights) -> (B, L, 1, H, W)`` (or None for
+            unshadowed), called per chunk of lights of ``kind`` (``"directional"``,
+            ``"point"``, ``"spot"``) with the slice of light indices: the fraction of each
+            light that reaches each pixel (e.g. shadow maps). Multiplies the illuminance.
         light_chunk: lights evaluated at once (default: from LIGHT_CHUNK_ELEMENTS).
             ``1`` is the plain Python loop over lights.
         checkpoint_chunks: recompute chunks in backward (default: when autograd is on
@@ -172,6 +188,8 @@ def shade(
     if lights.batch_size == 1 and b > 1:
         lights = lights.expand(b)
     shading_model = get_model(model)
+    if visibility is not None and not callable(visibility):
+        raise TypeError(f"visibility: expected a callable or None, got {type(visibility).__name__}")
     if ibl is not None and not callable(ibl):
         raise TypeError(f"ibl: expected a callable or None, got {type(ibl).__name__}")
     if light_chunk is not None and (not isinstance(light_chunk, int) or light_chunk < 1):
@@ -210,6 +228,7 @@ def shade(
         (PointLights, lights.point),
         (SpotLights, lights.spot),
     ):
+        name = {DirectionalLights: "directional", PointLights: "point", SpotLights: "spot"}[kind]
         if part is None or part.count == 0:
             continue
         slices = _chunks(part.count, per_chunk)
@@ -218,7 +237,12 @@ def shade(
             use_ckpt = torch.is_grad_enabled() and len(slices) > 1
         for sl in slices:
             chunk = part if len(slices) == 1 else part.select(sl)
-            args = (shading_model, kind, chunk, pos, n5, v5, surface)
+            vis = visibility(name, sl) if visibility is not None else None
+            if vis is not None:
+                check_tensor(f"visibility({name!r}) result", vis,
+                             (b, chunk.count, 1, h, w), floating=True)
+                vis = vis.to(dt)
+            args = (shading_model, kind, chunk, pos, n5, v5, surface, vis)
             if use_ckpt:
                 radiance = radiance + checkpoint(_direct, *args, use_reentrant=False)
             else:
