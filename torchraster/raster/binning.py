@@ -196,7 +196,7 @@ def _bin_large(
         sl = slice(start, end)
         counts = n_tiles[sl]
         tri = torch.repeat_interleave(big[sl], counts)
-        local = torch.arange(int(counts.sum())) - torch.repeat_interleave(
+        local = torch.arange(int(counts.sum()), device=counts.device) - torch.repeat_interleave(
             torch.cumsum(counts, 0) - counts, counts)
         ntx_r = torch.repeat_interleave(ntx[sl], counts)
         x0 = ((torch.repeat_interleave(tx0[sl], counts) + local % ntx_r) * tile).clamp(max=w - tw)

@@ -34,6 +34,8 @@ def interpolate_packed(
     if derivatives and frags.bary_dx_packed is None:
         raise ValueError("derivatives=True needs fragments from rasterize(..., derivatives=True)")
     n_vert, n_chan = vertex_attrs.shape[1:]
+    if n_chan == 0:
+        raise ValueError("vertex_attrs: expected at least one channel (C >= 1), got C = 0")
     if frags.corners.numel() and int(frags.corners.max()) >= n_vert:
         raise ValueError(
             f"vertex_attrs: V={n_vert} is smaller than the mesh the fragments came from")

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import torch
 
-from .._validate import check_resolution, check_tensor
+from .._validate import check_frame_memory, check_resolution, check_tensor
 from .binning import Records, TriangleSetup, bin_triangles, setup_triangles, sort_by_block
 from .clip import clip_and_project, outcodes, project
 
@@ -25,6 +25,10 @@ DEFAULT_TILE = 16
 DEFAULT_MEMORY_BUDGET = 96 * 2**20  # bytes of temporaries per chunk of pixel candidates
 _BYTES_PER_CANDIDATE = 64  # E, masks and depth (10 B) + ~7 int64 temporaries if covered
 _EMPTY_KEY = torch.iinfo(torch.int64).max
+#: Peak bytes per pixel of a frame whose pixels are all covered: rasterize + interpolate of
+#: 3 channels, measured 264-314 B (full-screen quad at 2048² and 1024²,
+#: docs/benchmarks.md); the up-front memory check assumes this.
+BYTES_PER_PIXEL = 320
 
 
 class Fragments:
@@ -133,6 +137,8 @@ def rasterize(
                             f"{cull_backfaces.dtype}")
         cull_backfaces = cull_backfaces.to(clip_pos.device)
     b = clip_pos.shape[0]
+    check_frame_memory(f"resolution ({h}, {w}) at batch {b}", b * h * w, BYTES_PER_PIXEL,
+                       clip_pos.device)
     max_candidates = max(1024, int(memory_budget) // _BYTES_PER_CANDIDATE)
     keys = torch.full((b * h * w,), _EMPTY_KEY, dtype=torch.int64, device=clip_pos.device)
     with torch.no_grad():

@@ -33,7 +33,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from torchraster._validate import check_tensor
+from torchraster._validate import check_radiance, check_tensor
+from torchraster.numerics import diffuse_color, dot, safe_normalize
 from torchraster.shading.brdf import MIN_ROUGHNESS, d_ggx, v_smith_ggx_correlated
 from torchraster.shading.lights import (  # one SH basis for ambient lights and IBL
     SH_C0,
@@ -45,19 +46,18 @@ from torchraster.shading.lights import (  # one SH basis for ambient lights and 
     sh_irradiance,
 )
 from torchraster.texture import (
-    _pad,
-    _sample_levels,
-    _sample_padded,
     build_mip_pyramid,
     latlong_directions,
     latlong_solid_angles,
     latlong_uv,
+    pad_texture,
     sample_latlong,
+    sample_levels,
+    sample_padded,
 )
 
 __all__ = [
     "MIN_N_DOT_V",
-    "NORMAL_EPS2",
     "MIN_DFG_ALBEDO",
     "FIS_LOD_BIAS",
     "MIN_LEVEL_HEIGHT",
@@ -80,11 +80,6 @@ __all__ = [
 #: well defined at grazing and back-facing views.
 MIN_N_DOT_V: float = 1e-4
 
-#: Squared length below which a normal / view vector counts as zero (|x| < 1e-6). A zero
-#: normal is shaded with the environment's mean irradiance (SH band 0) and no preferred
-#: direction; gradients stay finite ("double where").
-NORMAL_EPS2: float = 1e-12
-
 #: Floor on the directional albedo A + B in the energy compensation ``1 / (A + B)``. The
 #: smallest value in the table is ~0.4 (rough, grazing), so this only guards hostile LUTs.
 MIN_DFG_ALBEDO: float = 1e-4
@@ -99,18 +94,6 @@ FIS_LOD_BIAS: float = 0.0
 #: roughness-1 lobe has features (a sun crossing the horizon of the lobe) that 8 rows
 #: (22 degree texels) interpolate with ~2 % error.
 MIN_LEVEL_HEIGHT: int = 32
-
-
-def _normalize(x: torch.Tensor) -> torch.Tensor:
-    """Unit vectors along dim 1; vectors shorter than 1e-6 become 0 (finite gradient)."""
-    sq = (x * x).sum(1, keepdim=True)
-    ok = sq > NORMAL_EPS2
-    inv = torch.rsqrt(torch.where(ok, sq, torch.ones_like(sq)))
-    return torch.where(ok, x * inv, torch.zeros_like(x))
-
-
-def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    return (a * b).sum(1, keepdim=True)
 
 
 def yaw_rotation(angle: float | torch.Tensor, *, dtype: torch.dtype | None = None) -> torch.Tensor:
@@ -200,7 +183,7 @@ def irradiance_sh(sh: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
     """
     check_tensor("sh", sh, ("B", 9, 3), floating=True)
     check_tensor("n", n, ("B", 3, "H", "W"), floating=True)
-    return sh_irradiance(sh.expand(n.shape[0], -1, -1), _normalize(n)).clamp_min(0.0)
+    return sh_irradiance(sh.expand(n.shape[0], -1, -1), safe_normalize(n)).clamp_min(0.0)
 
 
 def irradiance_map(
@@ -347,8 +330,8 @@ def _prefilter_importance(
             w = n_dot_l[sel].view(1, 1, m, 1, 1)
             for k, wk in ((level, 1.0 - w_hi), (min(level + 1, top), w_hi)):
                 if k not in padded:
-                    padded[k] = _pad(src_levels[k], "wrap", "clamp")
-                vals = _sample_padded(padded[k], uv[:, 0], uv[:, 1], "bilinear", ("wrap", "clamp"))
+                    padded[k] = pad_texture(src_levels[k], "wrap", "clamp")
+                vals = sample_padded(padded[k], uv[:, 0], uv[:, 1], "bilinear", ("wrap", "clamp"))
                 acc = acc + (vals.view(b, 3, m, h, 2 * h) * (w * wk)).sum(2)
     return acc / n_dot_l.sum()
 
@@ -432,7 +415,7 @@ def prefilter_specular(
 
 
 @lru_cache(maxsize=8)
-def _dfg_lut_cpu(size: int, samples: int) -> torch.Tensor:
+def dfg_lut_uncached(size: int, samples: int) -> torch.Tensor:
     """float64 LUT ``(2, size, size)``: rows = roughness, columns = n.v, both from 0 to 1
     with nodes at the ends (n.v floored at 1e-4), looked up with ``align_corners=True``, so
     the common values roughness 1 and n.v 1 are table nodes, not extrapolated.
@@ -443,19 +426,19 @@ def _dfg_lut_cpu(size: int, samples: int) -> torch.Tensor:
     normalisation integral (exactly 1), which cancels most of the error of resolving the
     peak. Accuracy against a fine table: docs/benchmarks.md, section quality-ibl.
     """
-    f64 = torch.float64
-    nodes = torch.linspace(0.0, 1.0, size, dtype=f64)
+    f64, cpu = torch.float64, "cpu"  # built once on the CPU, cached, then moved
+    nodes = torch.linspace(0.0, 1.0, size, dtype=f64, device=cpu)
     nv = nodes.clamp_min(1e-4).view(size, 1, 1)
-    theta = 0.5 * math.pi * torch.linspace(0.0, 1.0, samples, dtype=f64) ** 3
+    theta = 0.5 * math.pi * torch.linspace(0.0, 1.0, samples, dtype=f64, device=cpu) ** 3
     n_phi = 16
-    phi = (torch.arange(n_phi, dtype=f64) + 0.5) * (math.pi / n_phi)
+    phi = (torch.arange(n_phi, dtype=f64, device=cpu) + 0.5) * (math.pi / n_phi)
     st, ct = theta.sin().view(-1, 1), theta.cos().view(-1, 1)
     hx, hz = st * phi.cos(), ct.expand(-1, n_phi)
     vh = torch.sqrt(1.0 - nv * nv) * hx + nv * hz  # (N, T, P); v = (sin, 0, cos), n = z
     nl = 2.0 * vh * hz - nv
     ok = (vh > 0) & (nl > 0)
     fc = (1.0 - vh.clamp(0.0, 1.0)) ** 5
-    table = torch.empty(2, size, size, dtype=f64)
+    table = torch.empty(2, size, size, dtype=f64, device=cpu)
     for i, rough in enumerate(nodes.tolist()):  # one roughness row at a time: bounded memory
         w = d_ggx(hz, rough) * v_smith_ggx_correlated(nv, nl.clamp_min(1e-12), rough)
         w = torch.where(ok, w * nl * 4 * vh, torch.zeros_like(w))
@@ -475,7 +458,7 @@ def dfg_lut(
 ) -> torch.Tensor:
     """Split-sum DFG table (Karis 2013), computed once per (size, samples) and cached.
 
-    ``samples``: quadrature nodes in the half-vector polar angle (see ``_dfg_lut_cpu``).
+    ``samples``: quadrature nodes in the half-vector polar angle (see ``dfg_lut_uncached``).
 
     Channel 0 is the F0 scale ``A = int (1 - Fc) G_vis``, channel 1 the bias
     ``B = int Fc G_vis`` (``Fc = (1 - v.h)^5``, G_vis = height-correlated Smith visibility
@@ -489,7 +472,7 @@ def dfg_lut(
     for name, val in (("size", size), ("samples", samples)):
         if int(val) != val or val < 2:
             raise ValueError(f"{name}: expected an int >= 2, got {val!r}")
-    return _dfg_lut_cpu(int(size), int(samples)).to(device=device, dtype=dtype)
+    return dfg_lut_uncached(int(size), int(samples)).to(device=device, dtype=dtype)
 
 
 def lookup_dfg(
@@ -554,6 +537,7 @@ class Environment:
         if isinstance(radiance, torch.Tensor) and radiance.dim() == 3:
             radiance = radiance[None]
         check_tensor("radiance", radiance, ("B", 3, "He", "We"), floating=True)
+        check_radiance("radiance", radiance)
         self.radiance = radiance
         rot = yaw_rotation(yaw, dtype=radiance.dtype).to(radiance.device)
         if rotation is not None:
@@ -564,9 +548,12 @@ class Environment:
         self.rotation = rot if rot.dim() == 3 else rot[None]
         if isinstance(intensity, torch.Tensor):
             check_tensor("intensity", intensity.reshape(-1), ("B",), floating=True)
+            check_radiance("intensity", intensity)
             self.intensity = intensity.reshape(-1, 1, 1, 1).to(radiance.dtype)
         else:
             self.intensity = float(intensity)
+            if not math.isfinite(self.intensity) or self.intensity < 0:
+                raise ValueError(f"intensity: expected a finite float >= 0, got {intensity!r}")
         self.specular_size = specular_size
         self.specular_levels = specular_levels
         self.specular_samples = specular_samples
@@ -648,7 +635,7 @@ class Environment:
             raise ValueError(f"r: batch {r.shape[0]} does not match the environment's")
         uv = latlong_uv(self.to_env(r))
         lod = roughness_to_lod(roughness, len(chain))
-        return self._scale(_sample_levels(chain, uv[:, 0], uv[:, 1], lod, ("wrap", "clamp")))
+        return self._scale(sample_levels(chain, uv[:, 0], uv[:, 1], lod, ("wrap", "clamp")))
 
 
 def shade_ibl(
@@ -698,15 +685,15 @@ def shade_ibl(
     if not isinstance(env, Environment):
         raise TypeError(f"env: expected an Environment, got {type(env).__name__}")
 
-    n = _normalize(normal)
-    v = _normalize(view_dir)
-    n_dot_v_raw = _dot(n, v)
+    n = safe_normalize(normal)
+    v = safe_normalize(view_dir)
+    n_dot_v_raw = dot(n, v)
     n_dot_v = n_dot_v_raw.clamp(MIN_N_DOT_V, 1.0)
     r = 2.0 * n_dot_v_raw * n - v  # reflect(-v, n)
     rough = roughness.clamp(0.0, 1.0)
     metal = metallic.clamp(0.0, 1.0)
 
-    f0 = f0_dielectric * (1.0 - metal) + albedo * metal
+    f0 = f0_dielectric * (1.0 - metal) + albedo * metal  # specular_f0 with a custom f0
     f90 = (f0.mean(1, keepdim=True) * (3 * 50.0 * 0.33)).clamp(0.0, 1.0)  # dot(f0, 16.5)
     lut = dfg_lut(lut_size, lut_samples, device=normal.device, dtype=normal.dtype)
     a, bias = lookup_dfg(lut, n_dot_v, rough)
@@ -714,6 +701,6 @@ def shade_ibl(
     spec = env.specular(r, rough) * e_ss
     if multiscatter:
         spec = spec * (1.0 + f0 * (1.0 / (a + bias).clamp_min(MIN_DFG_ALBEDO) - 1.0))
-    diffuse = (1.0 - metal) * albedo * env.irradiance(n) * (1.0 / math.pi) * (1.0 - e_ss)
+    diffuse = diffuse_color(albedo, metal) * env.irradiance(n) * (1.0 / math.pi) * (1.0 - e_ss)
     out = diffuse + spec
     return out * ao if ao is not None else out

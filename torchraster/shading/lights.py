@@ -37,7 +37,7 @@ from typing import Annotated, Literal
 import torch
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, field_validator, model_validator
 
-from torchraster._validate import check_tensor
+from torchraster._validate import check_radiance, check_tensor
 from torchraster.shading.brdf import safe_normalize
 
 #: Closest distance (m) a point / spot light is evaluated at: ``E = I / max(d^2, 1e-4)``
@@ -82,8 +82,13 @@ def _check_common(lights: object, batch: int | None = None) -> tuple[int, int]:
         check_tensor(f"{type(lights).__name__}.cast_shadows", shadows, first)
         if shadows.dtype != torch.bool:
             raise TypeError(f"{type(lights).__name__}.cast_shadows: expected a bool tensor")
-    if bool((lights.intensity < 0).any()):  # type: ignore[attr-defined]
-        raise ValueError(f"{type(lights).__name__}.intensity: must be >= 0")
+    for name in ("color", "intensity"):
+        check_radiance(f"{type(lights).__name__}.{name}", getattr(lights, name))
+    if hasattr(lights, "direction"):
+        norm2 = (lights.direction.detach() ** 2).sum(-1)  # type: ignore[attr-defined]
+        if bool((norm2 <= 0).any()):
+            raise ValueError(f"{type(lights).__name__}.direction: zero vector for light(s) "
+                             f"{(norm2 <= 0).nonzero()[:, 1].tolist()}; expected a direction")
     return first
 
 
@@ -105,6 +110,18 @@ class _LightSet:
             self,  # type: ignore[arg-type]
             **{f.name: getattr(self, f.name)[:, index] for f in dataclasses.fields(self)},  # type: ignore[arg-type]
         )
+
+    def expand(self, batch: int):
+        """The same lights for ``batch`` scenes: ``(1, L, ...)`` -> ``(batch, L, ...)``."""
+        if self.batch_size == batch:
+            return self
+        if self.batch_size != 1:
+            raise ValueError(f"{type(self).__name__}: cannot expand batch size "
+                             f"{self.batch_size} to {batch} (only 1 broadcasts)")
+        return dataclasses.replace(
+            self,  # type: ignore[arg-type]
+            **{f.name: getattr(self, f.name).expand(batch, *getattr(self, f.name).shape[1:])
+               for f in dataclasses.fields(self)})  # type: ignore[arg-type]
 
     def to(self, device=None, dtype: torch.dtype | None = None):
         """Move to ``device`` and cast floating tensors to ``dtype``."""
@@ -204,7 +221,8 @@ class Lights:
     def __post_init__(self) -> None:
         sizes = {}
         if self.ambient is not None:
-            check_tensor("Lights.ambient", self.ambient, ("B", 9, 3), floating=True)
+            check_tensor("Lights.ambient", self.ambient, ("B", 9, 3), floating=True,
+                         finite=True)
             sizes["ambient"] = self.ambient.shape[0]
         for name, kind in (
             ("directional", DirectionalLights),
@@ -230,6 +248,15 @@ class Lights:
             if part is not None:
                 return part.batch_size
         return None
+
+    def expand(self, batch: int) -> Lights:
+        """The same lights for ``batch`` scenes (every part of batch size 1 or ``batch``)."""
+        return Lights(
+            ambient=None if self.ambient is None else self.ambient.expand(batch, 9, 3),
+            directional=None if self.directional is None else self.directional.expand(batch),
+            point=None if self.point is None else self.point.expand(batch),
+            spot=None if self.spot is None else self.spot.expand(batch),
+        )
 
     def to(self, device=None, dtype: torch.dtype | None = None) -> Lights:
         """Move all tensors to ``device`` / cast floating ones to ``dtype``."""
