@@ -44,8 +44,10 @@ def _devices(config) -> list[str]:
 def pytest_generate_tests(metafunc):
     """kornia-style ``device`` and ``dtype`` fixtures: the test runs once per device (from
     ``--device``) and per dtype (float32, float64)."""
-    if "device" in metafunc.fixturenames:
+    explicit = {name.strip() for m in metafunc.definition.iter_markers("parametrize")
+                for name in (m.args[0].split(",") if isinstance(m.args[0], str) else m.args[0])}
+    if "device" in metafunc.fixturenames and "device" not in explicit:
         metafunc.parametrize("device", _devices(metafunc.config))
-    if "dtype" in metafunc.fixturenames:
+    if "dtype" in metafunc.fixturenames and "dtype" not in explicit:
         metafunc.parametrize("dtype", [torch.float32, torch.float64],
                              ids=["float32", "float64"])

@@ -79,3 +79,21 @@ def test_reverse_z_depth_values() -> None:
         rel = ((frags.depth[0] - z_ref) / z_ref).abs().max()
         assert rel < 1e-5, (far, float(rel))  # float32 vertices and matrices
         assert (frags.depth[0] < 0).all() and (frags.depth[0] > -1).all()
+
+
+def test_exact_duplicates_with_rotated_vertices_tie_to_the_lower_index():
+    """The same triangle listed three times, vertices rotated: every covered pixel must
+    resolve to face 0 (depth is evaluated in a canonical vertex order)."""
+    g = torch.Generator().manual_seed(1)
+    total = wrong = 0
+    for _ in range(20):
+        v = torch.rand(3, 4, generator=g, dtype=torch.float64) * 1.6 - 0.8
+        v[:, 3] = 1 + torch.rand(3, generator=g, dtype=torch.float64)
+        v[:, 2] = torch.rand(3, generator=g, dtype=torch.float64) * 0.5
+        v[:, :3] *= v[:, 3:]
+        pos = torch.cat([v, v[[1, 2, 0]], v[[2, 0, 1]]])[None].float()
+        frags = tr.rasterize(pos, torch.tensor([[0, 1, 2], [3, 4, 5], [6, 7, 8]]), (64, 64))
+        covered = frags.face_id >= 0
+        total += int(covered.sum())
+        wrong += int((frags.face_id[covered] != 0).sum())
+    assert total > 1000 and wrong == 0

@@ -69,14 +69,31 @@ def setup_triangles(tris: ScreenTriangles) -> TriangleSetup:
     top_left = (ea > 0) | ((ea == 0) & (eb > 0))
     tiny = torch.finfo(x.dtype).tiny * torch.finfo(x.dtype).eps
     thresh = (~top_left).to(x.dtype).mul_(tiny)
-    # Depth plane relative to vertex 0, so a constant depth stays exactly constant.
+    # Depth plane relative to the canonical first vertex (the lexicographically smallest
+    # (x, y); a rotation keeps the winding), evaluated in that vertex order: the same
+    # triangle listed with its vertices rotated gets bit-identical depths, so exact
+    # duplicates tie and the lower face index wins. A constant depth stays exactly constant.
+    x, y, z = _canonical_rotation(x, y, z)
     dz1, dz2 = z[1] - z[0], z[2] - z[0]
     dx1, dx2 = x[1] - x[0], x[2] - x[0]
     dy1, dy2 = y[1] - y[0], y[2] - y[0]
-    dzdx = (dz1 * dy2 - dz2 * dy1) / tris.area
-    dzdy = (dx1 * dz2 - dx2 * dz1) / tris.area
+    area = dx1 * dy2 - dx2 * dy1
+    area = torch.where(area == 0, torch.ones_like(area), area)  # culled later; no 0 / 0
+    dzdx = (dz1 * dy2 - dz2 * dy1) / area
+    dzdy = (dx1 * dz2 - dx2 * dz1) / area
     coef = torch.cat([ea, eb, ec, thresh, dzdx[None], dzdy[None], x[:1], y[:1], z[:1]])
     return TriangleSetup(coef=coef, box=tris.box, key_lo=tris.face, batch=tris.batch)
+
+
+def _canonical_rotation(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor):
+    """Rotate each triangle's vertex rows (3, N) so that row 0 is its lexicographically
+    smallest (x, y) vertex (ties: the earlier one)."""
+    def before(i: int, j: int) -> torch.Tensor:
+        return (x[i] < x[j]) | ((x[i] == x[j]) & (y[i] <= y[j]))
+
+    first = torch.where(before(0, 1) & before(0, 2), 0, torch.where(before(1, 2), 1, 2))
+    order = (first + torch.arange(3, device=x.device)[:, None]) % 3  # (3, N)
+    return x.gather(0, order), y.gather(0, order), z.gather(0, order)
 
 
 @dataclass
