@@ -36,15 +36,13 @@ import torch  # noqa: E402
 import torch.nn.functional as F  # noqa: E402
 from benchmd import markdown_table, median_time, update_section  # noqa: E402
 
+from torchraster.config import BloomConfig, DOFConfig, SSAOConfig  # noqa: E402
 from torchraster.post import (  # noqa: E402
     SSAO,
     AutoExposure,
     Bloom,
-    BloomConfig,
     DepthOfField,
-    DOFConfig,
     EncodeSRGB,
-    SSAOConfig,
     ToneMap,
     bright_pass,
     circle_of_confusion,

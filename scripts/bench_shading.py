@@ -24,8 +24,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import torch  # noqa: E402
 from benchmd import markdown_table, update_section  # noqa: E402
 
+from torchraster.config import lights_from_config  # noqa: E402
 from torchraster.gbuffer import GBuffer
-from torchraster.shading import MODELS, lights_from_config, shade  # noqa: E402
+from torchraster.shading import MODELS, shade  # noqa: E402
 from torchraster.shading.lighting import LIGHT_CHUNK_ELEMENTS  # noqa: E402
 
 

@@ -23,12 +23,11 @@ import trimesh
 from skimage import io as skio
 
 import torchraster as tr
-from torchraster.config import CameraConfig, OrbitConfig
+from torchraster.config import CameraConfig, OrbitConfig, lights_from_config
 from torchraster.hdr_io import read_hdr
 from torchraster.pipeline import build_camera
 from torchraster.post.tonemap import tone_curve
 from torchraster.shading.ibl import Environment
-from torchraster.shading.lights import lights_from_config
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"

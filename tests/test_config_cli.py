@@ -81,8 +81,9 @@ def test_cli_bad_config_exit_code_and_message(tmp_path, capsys):
 
 def test_cli_missing_mesh_names_the_file(tmp_path, capsys):
     cfg = _write(tmp_path, "scene:\n  mesh: missing.obj\n")
-    assert main(["render", str(cfg), "--out", str(tmp_path / "out")]) == 1
-    assert "missing.obj" in capsys.readouterr().err
+    assert main(["render", str(cfg), "--out", str(tmp_path / "out")]) == 2  # before rendering
+    err = capsys.readouterr().err
+    assert "c.yaml:2: scene.mesh: file not found" in err and "missing.obj" in err
 
 
 def test_several_cameras_and_npy_outputs(tmp_path):

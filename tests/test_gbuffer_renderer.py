@@ -8,10 +8,10 @@ import trimesh
 
 import torchraster as tr
 from torchraster import camera
+from torchraster.config import lights_from_config
 from torchraster.gbuffer import geometry_pass, required_inputs
 from torchraster.renderer import view_rays
 from torchraster.shading.ibl import Environment
-from torchraster.shading.lights import lights_from_config
 
 H = W = 48
 

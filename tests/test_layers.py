@@ -39,7 +39,8 @@ def _imports(path: Path) -> list[tuple[str, int]]:
                 base = parts[:-node.level] if node.level <= len(parts) else []
                 target = base + (node.module.split(".") if node.module else [])
                 if not target:  # "from . import camera"
-                    out += [(a.name, node.lineno) for a in node.names]
+                    out += [(a.name, node.lineno) for a in node.names
+                            if not a.name.startswith("__")]
                 else:
                     out.append((target[0], node.lineno))
             elif node.module and node.module.split(".")[0] == "torchraster":

@@ -9,8 +9,9 @@ from pathlib import Path
 import pytest
 import torch
 
+from torchraster.config import lights_from_config
 from torchraster.gbuffer import GBuffer
-from torchraster.shading import MODELS, Lights, lights_from_config, shade
+from torchraster.shading import MODELS, Lights, shade
 from torchraster.shading.lighting import dfg_lut, env_brdf
 from torchraster.shading.lights import DirectionalLights
 from torchraster.shading.models import Surface

@@ -9,6 +9,7 @@ import pytest
 import torch
 import yaml
 
+from torchraster.config import lights_from_config, parse_lights
 from torchraster.shading.lights import (
     MIN_LIGHT_DISTANCE,
     DirectionalLights,
@@ -16,8 +17,6 @@ from torchraster.shading.lights import (
     PointLights,
     SpotLights,
     directional_incidence,
-    lights_from_config,
-    parse_lights,
     point_incidence,
     sh_basis,
     sh_from_color,

@@ -7,16 +7,14 @@ import pytest
 import torch
 import yaml
 
+from torchraster.config import PostConfig, build_post_chain, build_ssao
 from torchraster.post import (
     SSAO,
     AutoExposure,
     Bloom,
     DepthOfField,
     EncodeSRGB,
-    PostChain,
-    PostConfig,
     ToneMap,
-    build_ssao,
 )
 
 YAML = """
@@ -34,7 +32,7 @@ def test_defaults_are_sensible() -> None:
     cfg = PostConfig()
     assert not cfg.dof.enabled and not cfg.bloom.enabled and not cfg.auto_exposure.enabled
     assert cfg.exposure.enabled and cfg.tonemap.enabled and cfg.encode.enabled
-    chain = PostChain.from_config(cfg)
+    chain = build_post_chain(cfg)
     x = torch.rand(1, 3, 8, 8) * 4
     y = chain(x)
     assert chain.last_run == ["exposure", "tonemap", "encode"]
@@ -43,7 +41,7 @@ def test_defaults_are_sensible() -> None:
 
 def test_chain_runs_canonical_order_and_matches_manual_composition() -> None:
     cfg = PostConfig.model_validate(yaml.safe_load(YAML)["post"])
-    chain = PostChain.from_config(cfg)
+    chain = build_post_chain(cfg)
     x = torch.rand(2, 3, 16, 16, dtype=torch.float64) * 5
     depth = torch.rand(2, 1, 16, 16, dtype=torch.float64) * 8 + 0.5
     y = chain(x, depth, dt=None)
@@ -60,7 +58,7 @@ def test_all_disabled_returns_input_object() -> None:
     cfg = PostConfig.model_validate({"exposure": {"enabled": False},
                                      "tonemap": {"enabled": False},
                                      "encode": {"enabled": False}})
-    chain = PostChain.from_config(cfg)
+    chain = build_post_chain(cfg)
     x = torch.rand(1, 3, 4, 4)
     assert chain(x) is x and chain.last_run == []
 
@@ -79,10 +77,10 @@ def test_config_rejects_unknown_keys_and_bad_values() -> None:
 
 
 def test_dof_needs_depth_and_ssao_is_separate() -> None:
-    chain = PostChain.from_config({"dof": {"enabled": True}})
+    chain = build_post_chain({"dof": {"enabled": True}})
     with pytest.raises(ValueError, match="depth"):
         chain(torch.rand(1, 3, 8, 8))
     cfg = PostConfig.model_validate(yaml.safe_load(YAML)["post"])
     ssao = build_ssao(cfg)
     assert isinstance(ssao, SSAO) and ssao.samples == 8 and ssao.enabled
-    assert not any(isinstance(m, SSAO) for m in PostChain.from_config(cfg).modules())
+    assert not any(isinstance(m, SSAO) for m in build_post_chain(cfg).modules())

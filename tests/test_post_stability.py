@@ -6,6 +6,7 @@ import pytest
 import torch
 from torch.autograd import gradcheck
 
+from torchraster.config import PostConfig, build_post_chain
 from torchraster.post import (
     SSAO,
     AutoExposure,
@@ -14,8 +15,6 @@ from torchraster.post import (
     EncodeSRGB,
     Exposure,
     GaussianBlur,
-    PostChain,
-    PostConfig,
     ToneMap,
 )
 
@@ -94,7 +93,7 @@ def test_gradcheck_blur_and_full_chain() -> None:
         "auto_exposure": {"enabled": True},
         "tonemap": {"curve": "hable"},
     })
-    chain = PostChain.from_config(cfg)
+    chain = build_post_chain(cfg)
     depth = torch.rand(1, 1, 8, 8, dtype=D) * 3 + 0.6
     assert gradcheck(lambda x: chain(x, depth), (_x(),))
     assert chain.last_run == ["dof", "bloom", "auto_exposure", "tonemap", "encode"]
@@ -133,7 +132,7 @@ def _modules() -> dict[str, torch.nn.Module]:
         "reinhard_extended": ToneMap("reinhard_extended"), "aces": ToneMap("aces"),
         "hable": ToneMap("hable"), "linear": ToneMap("linear"), "encode": EncodeSRGB(),
         "auto_exposure": AutoExposure(), "bloom": Bloom(threshold=0.0), "blur": GaussianBlur(2.0),
-        "dof": DepthOfField(focus_distance=2.0), "chain": PostChain.from_config(cfg),
+        "dof": DepthOfField(focus_distance=2.0), "chain": build_post_chain(cfg),
     }
 
 

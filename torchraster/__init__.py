@@ -16,7 +16,7 @@ The contract and the layers are described in ``docs/design.md``. In data-flow or
 """
 
 from . import camera, post, shading
-from .config import ConfigError, load_config, parse_config
+from .config import ConfigError, lights_from_config, load_config, parse_config
 from .gbuffer import CHANNELS, GBuffer, geometry_pass
 from .hdr_io import read_hdr
 from .io import MeshFileError, Scene, load_mesh, load_scene, load_spot
@@ -34,7 +34,7 @@ __all__ = [
     "CHANNELS", "ConfigError", "DirectionalLights", "Environment", "Fragments", "GBuffer",
     "Lights", "Material", "Mesh", "MeshFileError", "NotImplementedWarning", "PointLights",
     "RenderOutput", "RenderPlan", "RenderScene", "Renderer", "Scene", "SpotLights", "camera",
-    "geometry_pass", "interpolate", "load_config", "load_mesh", "load_scene", "load_spot",
+    "geometry_pass", "interpolate", "lights_from_config", "load_config", "load_mesh", "load_scene", "load_spot",
     "pack_meshes", "parse_config", "post", "rasterize", "read_hdr", "render_config",
     "render_to_files", "sh_from_color", "shade", "shading", "vertex_normals",
 ]

@@ -1,9 +1,18 @@
-"""YAML render configs: schema, defaults and validation with key paths and line numbers.
+"""YAML render configs: the schema, its validation and the builders of the objects it names.
 
-A config names a scene (mesh or glTF file, relative to the config file), one or more
-cameras, render settings, lights, an optional environment map, material overrides,
-post-processing and outputs. Unknown keys are errors. Every error names the file, the line
-and the key path, e.g. ``quickstart.yaml:7: cameras.0.fov_deg: Input should be less than 180``.
+The config layer is the only place that knows YAML. A config names a scene (mesh or glTF
+file, relative to the config file), cameras, render settings, lights, an optional
+environment map, material overrides, post-processing and outputs; the full reference is
+``docs/config.md`` (``torchraster schema`` prints it). Unknown keys are errors, with a
+"did you mean" suggestion. Every error names the file, the line and the key path, e.g.
+``quickstart.yaml:7: cameras.0.fov_deg: Input should be less than 180``, and
+:func:`check_config` finds every missing file and degenerate camera in one pass before
+anything renders.
+
+Defaults live in one place: the keyword defaults of the objects the config builds
+(``Bloom(threshold=1.0)``, ``Renderer(supersample=1)``, ...) or the named constants of their
+module (light defaults); the pydantic fields read them (:func:`default_of`) and the
+builders pass keyword arguments.
 
 Example (``configs/quickstart.yaml``)::
 
@@ -12,25 +21,75 @@ Example (``configs/quickstart.yaml``)::
     cameras:
       - orbit: {azimuth_deg: 30, elevation_deg: 15}
     render:
-      resolution: [512, 512]
+      resolution: [512, 512]    # [H, W], or one int for a square image
 """
 
 from __future__ import annotations
 
+import difflib
+import inspect
+import math
+import re
+import typing
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
+import torch
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    PrivateAttr,
+    TypeAdapter,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
-from .post.chain import PostConfig
-from .shading.lights import LightConfig
+from .post import SSAO, AutoExposure, Bloom, DepthOfField, EncodeSRGB, Exposure, PostChain, ToneMap
+from .post.tonemap import CURVES
+from .renderer import SHADING, Renderer
+from .shading.lights import (
+    DEFAULT_COLOR,
+    DEFAULT_DIRECTION,
+    DEFAULT_INNER_CONE_ANGLE,
+    DEFAULT_INTENSITY,
+    DEFAULT_OUTER_CONE_ANGLE,
+    SH_C0,
+    DirectionalLights,
+    Lights,
+    PointLights,
+    SpotLights,
+)
+
+#: YAML nodes a config may expand to (aliases expanded): far above any real config, far
+#: below what a "billion laughs" document would make us allocate.
+MAX_YAML_NODES: int = 100_000
+#: Largest supersampled image side (``render.supersample * max(resolution)``).
+MAX_SUPERSAMPLED_SIDE: int = 16384
+#: Largest image side of ``render.resolution``.
+MAX_RESOLUTION: int = 16384
+MAX_SSAO_SAMPLES: int = 1024
+MAX_DOF_LEVELS: int = 64
+MAX_BLOOM_LEVELS: int = 16
+
+
+def default_of(obj: Any, name: str) -> Any:
+    """The default of keyword argument ``name`` of ``obj`` (a class: its ``__init__``)."""
+    target = obj.__init__ if inspect.isclass(obj) else obj
+    default = inspect.signature(target).parameters[name].default
+    if default is inspect.Parameter.empty:
+        raise TypeError(f"{obj.__name__}({name}=...) has no default")
+    return default
+
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
+NonNeg = Annotated[float, Field(ge=0, allow_inf_nan=False)]
 Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 Vec3 = Annotated[list[Finite], Field(min_length=3, max_length=3)]
-Color3 = Annotated[list[Annotated[float, Field(ge=0, allow_inf_nan=False)]],
-                   Field(min_length=3, max_length=3)]
+Color3 = Annotated[list[NonNeg], Field(min_length=3, max_length=3)]
 
 
 class ConfigError(ValueError):
@@ -54,8 +113,14 @@ class SceneConfig(_Strict):
 
     mesh: str
     transform: TransformConfig = Field(default_factory=TransformConfig)
-    normals: Literal["auto", "smooth", "flat"] = "auto"
-    max_texture_size: Annotated[int, Field(ge=1)] | None = 2048
+    normals: Literal["auto", "smooth", "flat"] = Field(
+        "auto", description="auto: the file's normals (smooth if it has none); smooth: "
+        "computed vertex normals; flat: one normal per face")
+    max_texture_size: Annotated[int, Field(ge=1)] | None = Field(
+        2048, description="textures are downscaled so the longer side is at most this")
+    allow_missing_textures: bool = Field(
+        False, description="render a mesh whose texture files are missing without them "
+        "(with a warning) instead of failing")
 
 
 class OrbitConfig(_Strict):
@@ -69,6 +134,8 @@ class OrbitConfig(_Strict):
 
 
 class LookAtConfig(_Strict):
+    """Camera at ``eye`` looking at ``target`` with ``up`` roughly up."""
+
     eye: Vec3
     target: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
     up: Vec3 = Field(default_factory=lambda: [0.0, 1.0, 0.0])
@@ -86,7 +153,8 @@ class IntrinsicsConfig(_Strict):
 class CameraConfig(_Strict):
     """One view. Exactly one of ``orbit`` / ``look_at`` places it (default: orbit)."""
 
-    name: str | None = None
+    name: str | None = Field(None, description="output sub-folder (sanitised to letters, "
+                             "digits, '.', '_', '-'); default view<index>")
     projection: Literal["perspective", "orthographic"] = "perspective"
     fov_deg: Annotated[float, Field(gt=0, lt=180)] = 45.0
     intrinsics: IntrinsicsConfig | None = None
@@ -109,12 +177,32 @@ class CameraConfig(_Strict):
 
 
 class RenderConfig(_Strict):
-    resolution: Annotated[int, Field(ge=1, le=16384)] | Annotated[
-        list[Annotated[int, Field(ge=1, le=16384)]], Field(min_length=2, max_length=2)] = 512
-    shading: Literal["headlight", "pbr", "unlit"] = "headlight"
-    background: Color3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
-    supersample: Annotated[int, Field(ge=1, le=8)] = 1
-    cull_backfaces: bool = False
+    """Image size and shading (``resolution``: ``[H, W]`` or one int for a square)."""
+
+    resolution: Annotated[int, Field(ge=1, le=MAX_RESOLUTION)] | Annotated[
+        list[Annotated[int, Field(ge=1, le=MAX_RESOLUTION)]], Field(min_length=2, max_length=2)
+    ] = Field(512, description="[H, W] in pixels, or one int for a square image")
+    shading: Literal[SHADING] = Field(  # type: ignore[valid-type]
+        "headlight", description="pbr needs lights or an environment; headlight is Lambert "
+        "lit from the camera; unlit is albedo + emissive")
+    background: Color3 = Field(
+        default_factory=lambda: list(default_of(Renderer, "background")),
+        description="linear RGB of empty pixels (the environment replaces it when shown)")
+    supersample: Annotated[int, Field(ge=1, le=8)] = Field(
+        default_of(Renderer, "supersample"),
+        description="render at s x the resolution and box-filter down")
+    cull_backfaces: bool = Field(default_of(Renderer, "cull_backfaces"),
+                                 description="drop back faces of every material")
+    texture_filter: Literal["trilinear", "bilinear", "nearest"] = default_of(
+        Renderer, "texture_filter")
+
+    @model_validator(mode="after")
+    def _bounded(self) -> RenderConfig:
+        side = max(self.size) * self.supersample
+        if side > MAX_SUPERSAMPLED_SIDE:
+            raise ValueError(f"supersample x resolution = {side} pixels a side exceeds "
+                             f"{MAX_SUPERSAMPLED_SIDE}; lower supersample or resolution")
+        return self
 
     @property
     def size(self) -> tuple[int, int]:
@@ -131,6 +219,167 @@ class EnvironmentConfig(_Strict):
     background: bool = True
 
 
+class _LightConfigBase(_Strict):
+    name: str | None = None
+    color: Color3 = Field(default_factory=lambda: list(DEFAULT_COLOR))
+    intensity: NonNeg = DEFAULT_INTENSITY
+
+
+class _DirectionMixin(BaseModel):
+    @field_validator("direction", check_fields=False)
+    @classmethod
+    def check_direction(cls, v: list[float]) -> list[float]:
+        if sum(x * x for x in v) <= 0.0:
+            raise ValueError("direction must not be the zero vector")
+        return v
+
+
+class AmbientLightConfig(_LightConfigBase):
+    """Constant ambient radiance ``color * intensity`` (nits), or ``sh``: 9 RGB SH
+    coefficients of the incident radiance (scaled by ``intensity``, ``color`` ignored)."""
+
+    type: Literal["ambient"]
+    sh: Annotated[list[Vec3], Field(min_length=9, max_length=9)] | None = None
+
+
+class DirectionalLightConfig(_DirectionMixin, _LightConfigBase):
+    """Directional light: ``direction`` the light travels (default -Z, glTF), lux."""
+
+    type: Literal["directional"]
+    direction: Vec3 = Field(default_factory=lambda: list(DEFAULT_DIRECTION))
+    cast_shadows: bool = False
+
+
+class PointLightConfig(_LightConfigBase):
+    """Point light at ``position``; ``intensity`` in candela, optional ``range`` (m)."""
+
+    type: Literal["point"]
+    position: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+    range: Annotated[float, Field(gt=0.0)] | None = None
+    cast_shadows: bool = False
+
+
+class SpotLightConfig(_DirectionMixin, PointLightConfig):
+    """Spot light: a point light limited to a cone around ``direction`` (default -Z)."""
+
+    type: Literal["spot"]  # type: ignore[assignment]
+    direction: Vec3 = Field(default_factory=lambda: list(DEFAULT_DIRECTION))
+    inner_cone_angle: Annotated[float, Field(ge=0.0, le=math.pi / 2)] = DEFAULT_INNER_CONE_ANGLE
+    outer_cone_angle: Annotated[float, Field(gt=0.0, le=math.pi / 2)] = DEFAULT_OUTER_CONE_ANGLE
+
+    @model_validator(mode="after")
+    def _cones(self) -> SpotLightConfig:
+        if self.inner_cone_angle >= self.outer_cone_angle:
+            raise ValueError(
+                f"inner_cone_angle ({self.inner_cone_angle}) must be < outer_cone_angle "
+                f"({self.outer_cone_angle}) (radians)"
+            )
+        return self
+
+
+LightConfig = Annotated[
+    AmbientLightConfig | DirectionalLightConfig | PointLightConfig | SpotLightConfig,
+    Field(discriminator="type"),
+]
+_LIGHT_LIST = TypeAdapter(list[LightConfig])
+
+
+class DOFConfig(_Strict):
+    """Thin-lens depth of field (needs linear depth)."""
+
+    enabled: bool = False
+    focus_distance: Positive = Field(default_of(DepthOfField, "focus_distance"),
+                                     description="metres")
+    focal_length_mm: Positive = default_of(DepthOfField, "focal_length_mm")
+    f_number: Positive = default_of(DepthOfField, "f_number")
+    sensor_width_mm: Positive = default_of(DepthOfField, "sensor_width_mm")
+    max_coc: Positive = Field(default_of(DepthOfField, "max_coc"),
+                              description="largest CoC diameter, pixels")
+    levels: Annotated[int, Field(ge=2, le=MAX_DOF_LEVELS)] = Field(
+        default_of(DepthOfField, "levels"), description="blur levels blended per pixel")
+
+
+class BloomConfig(_Strict):
+    """HDR bloom (bright pass + 13-tap pyramid)."""
+
+    enabled: bool = False
+    threshold: NonNeg = default_of(Bloom, "threshold")
+    knee: NonNeg = default_of(Bloom, "knee")
+    intensity: NonNeg = default_of(Bloom, "intensity")
+    radius: NonNeg = Field(default_of(Bloom, "radius"),
+                           description="Gaussian sigma per level, level pixels")
+    levels: Annotated[int, Field(ge=1, le=MAX_BLOOM_LEVELS)] = default_of(Bloom, "levels")
+    karis: bool = default_of(Bloom, "karis")
+
+
+class ExposureConfig(_Strict):
+    """Manual exposure in EV (also the compensation when auto-exposure is on)."""
+
+    enabled: bool = True
+    ev: Finite = default_of(Exposure, "ev")
+
+
+class AutoExposureConfig(_Strict):
+    """Metered exposure with temporal adaptation (replaces manual exposure when enabled)."""
+
+    enabled: bool = False
+    key: Positive = default_of(AutoExposure, "key")
+    min_ev: Finite = default_of(AutoExposure, "min_ev")
+    max_ev: Finite = default_of(AutoExposure, "max_ev")
+    metering: Literal["average", "percentile"] = default_of(AutoExposure, "metering")
+    percentile_low: Annotated[float, Field(ge=0, le=1)] = default_of(AutoExposure,
+                                                                     "percentile_low")
+    percentile_high: Annotated[float, Field(ge=0, le=1)] = default_of(AutoExposure,
+                                                                      "percentile_high")
+    rate: NonNeg = Field(default_of(AutoExposure, "rate"), description="adaptation speed, 1/s")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> AutoExposureConfig:
+        if self.min_ev > self.max_ev:
+            raise ValueError("min_ev must be <= max_ev")
+        if self.percentile_low >= self.percentile_high:
+            raise ValueError("percentile_low must be < percentile_high")
+        return self
+
+
+class ToneMapConfig(_Strict):
+    """Tone curve (see ``torchraster.post.tonemap``)."""
+
+    enabled: bool = True
+    curve: Literal[CURVES] = default_of(ToneMap, "curve")  # type: ignore[valid-type]
+    white: Positive = Field(default_of(ToneMap, "white"),
+                            description="white point of reinhard_extended")
+
+
+class EncodeConfig(_Strict):
+    """Output encoding (linear -> sRGB transfer function)."""
+
+    enabled: bool = True
+
+
+class SSAOConfig(_Strict):
+    """Screen-space ambient occlusion (feeds the lighting pass, pbr shading only)."""
+
+    enabled: bool = False
+    radius: Positive = Field(default_of(SSAO, "radius"), description="scene units")
+    samples: Annotated[int, Field(ge=1, le=MAX_SSAO_SAMPLES)] = default_of(SSAO, "samples")
+    bias: NonNeg = default_of(SSAO, "bias")
+    softness: Positive = default_of(SSAO, "softness")
+    blur: bool = default_of(SSAO, "blur")
+
+
+class PostConfig(_Strict):
+    """The ``post:`` section of a render config."""
+
+    dof: DOFConfig = Field(default_factory=DOFConfig)
+    bloom: BloomConfig = Field(default_factory=BloomConfig)
+    exposure: ExposureConfig = Field(default_factory=ExposureConfig)
+    auto_exposure: AutoExposureConfig = Field(default_factory=AutoExposureConfig)
+    tonemap: ToneMapConfig = Field(default_factory=ToneMapConfig)
+    encode: EncodeConfig = Field(default_factory=EncodeConfig)
+    ssao: SSAOConfig = Field(default_factory=SSAOConfig)
+
+
 class MaterialOverride(_Strict):
     """Overrides for the materials whose name matches ``match`` ('*' = all)."""
 
@@ -143,12 +392,17 @@ class MaterialOverride(_Strict):
     base_color_texture: str | None = None  # image file (sRGB), relative to the config
 
 
-Channel = Literal["color", "alpha", "depth", "position", "normal", "albedo", "metallic",
+Channel = Literal["color", "radiance", "alpha", "depth", "position", "normal", "albedo", "metallic",
                   "roughness", "ao", "emissive", "face_id", "uv"]
 
 
 class OutputConfig(_Strict):
-    """What to write: channels and file formats (exr needs the optional OpenEXR package)."""
+    """What to write: channels and file formats (exr needs the optional OpenEXR package).
+
+    ``color`` is the display image (post chain applied, tone mapped, sRGB encoded, in [0, 1]);
+    ``radiance`` is linear HDR (post chain up to, not including, tone mapping). Float
+    formats (npy, exr) hold the raw values; png a display encoding (see the README table).
+    """
 
     channels: list[Channel] = Field(default_factory=lambda: ["color", "depth", "normal"])
     formats: list[Literal["png", "npy", "exr"]] = Field(default_factory=lambda: ["png"])
@@ -161,14 +415,30 @@ class RenderFile(_Strict):
     cameras: Annotated[list[CameraConfig], Field(min_length=1)] = Field(
         default_factory=lambda: [CameraConfig()])
     render: RenderConfig = Field(default_factory=RenderConfig)
-    lights: list[LightConfig] = Field(default_factory=list)
+    lights: list[LightConfig] = Field(default_factory=list)  # type: ignore[valid-type]
     environment: EnvironmentConfig | None = None
     materials: list[MaterialOverride] = Field(default_factory=list)
     post: PostConfig | None = None
     outputs: OutputConfig = Field(default_factory=OutputConfig)
 
-    # Set by load_config: the folder relative paths are resolved against.
+    # Set by parse_config: the folder relative paths are resolved against, the source name
+    # and the line of every key path (for errors found after validation).
     base_dir: Path = Field(default=Path("."), exclude=True)
+    _source: str = PrivateAttr(default="<config>")
+    _lines: dict = PrivateAttr(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _pbr_needs_light(self) -> RenderFile:
+        if self.render.shading == "pbr" and not self.lights and self.environment is None:
+            raise ValueError("render.shading 'pbr' needs light: add a 'lights:' entry or an "
+                             "'environment:', or use shading: headlight / unlit")
+        return self
+
+    def where(self, *loc: str | int) -> str:
+        """``file:line: key.path`` of a key path (the nearest line found)."""
+        line = _line_of(self._lines, loc)
+        key = ".".join(str(p) for p in loc)
+        return f"{self._source}:{line}: {key}" if line else f"{self._source}: {key}"
 
     def resolve(self, relative: str) -> Path:
         """A path from the config, resolved against the config file's folder."""
@@ -176,38 +446,147 @@ class RenderFile(_Strict):
         return p if p.is_absolute() else (self.base_dir / p).resolve()
 
 
-def _key_lines(node: yaml.Node, path: tuple = (), out: dict | None = None) -> dict:
-    """Map every key path in a composed YAML node tree to its 1-based line number."""
-    out = {} if out is None else out
-    out[path] = node.start_mark.line + 1
-    if isinstance(node, yaml.MappingNode):
-        for key, value in node.value:
-            out[path + (key.value,)] = key.start_mark.line + 1
-            _key_lines(value, path + (key.value,), out)
-    elif isinstance(node, yaml.SequenceNode):
-        for i, item in enumerate(node.value):
-            _key_lines(item, path + (i,), out)
+# --------------------------------------------------------------------------- parsing
+
+
+def _expanded_size(node: yaml.Node, source: str) -> int:
+    """Number of nodes of the document with aliases expanded (memoised, so a "billion
+    laughs" document is measured in linear time); raises ConfigError past MAX_YAML_NODES
+    or on a recursive alias."""
+    sizes: dict[int, int] = {}
+    active: set[int] = set()
+
+    def size(n: yaml.Node) -> int:
+        key = id(n)
+        if key in sizes:
+            return sizes[key]
+        if key in active:
+            line = n.start_mark.line + 1
+            raise ConfigError(f"{source}:{line}: recursive YAML alias (a node that contains "
+                              "itself); configs cannot be recursive")
+        active.add(key)
+        total = 1
+        if isinstance(n, yaml.MappingNode):
+            total += sum(size(k) + size(v) for k, v in n.value)
+        elif isinstance(n, yaml.SequenceNode):
+            total += sum(size(v) for v in n.value)
+        active.discard(key)
+        sizes[key] = min(total, MAX_YAML_NODES + 1)
+        return sizes[key]
+
+    total = size(node)
+    if total > MAX_YAML_NODES:
+        raise ConfigError(f"{source}: YAML aliases expand to more than {MAX_YAML_NODES:,} "
+                          "values; refusing to load it (an alias bomb?)")
+    return total
+
+
+def _key_lines(node: yaml.Node) -> dict:
+    """Map every key path of a composed YAML tree to its 1-based line number (each node
+    visited once: aliased content keeps the line of its anchor)."""
+    out: dict = {}
+    seen: set[int] = set()
+    stack: list[tuple[yaml.Node, tuple]] = [(node, ())]
+    while stack:
+        n, path = stack.pop()
+        out.setdefault(path, n.start_mark.line + 1)
+        if id(n) in seen:
+            continue
+        seen.add(id(n))
+        if isinstance(n, yaml.MappingNode):
+            for key, value in n.value:
+                kp = path + (getattr(key, "value", str(key)),)
+                out.setdefault(kp, key.start_mark.line + 1)
+                stack.append((value, kp))
+        elif isinstance(n, yaml.SequenceNode):
+            stack.extend((item, path + (i,)) for i, item in enumerate(n.value))
     return out
 
 
-def _line_of(lines: dict, loc: tuple) -> int | None:
+_UNION_TAGS = ("ambient", "directional", "point", "spot")
+
+
+def _line_of(lines: dict, loc: Sequence) -> int | None:
     """Line of the longest prefix of ``loc`` found in the YAML (pydantic adds union tags)."""
     loc = tuple(int(p) if isinstance(p, str) and p.isdigit() else p for p in loc)
     for n in range(len(loc), -1, -1):
-        cand = tuple(p for p in loc[:n])
+        cand = tuple(loc[:n])
         if cand in lines:
             return lines[cand]
-        # discriminated unions insert the tag ('point') into the location: skip it
-        stripped = tuple(p for p in cand if p not in ("ambient", "directional", "point", "spot"))
+        stripped = tuple(p for p in cand if p not in _UNION_TAGS)
         if stripped in lines:
             return lines[stripped]
     return None
 
 
-def parse_config(text: str, source: str = "<string>", base_dir: Path | None = None) -> RenderFile:
-    """Validate YAML text into a :class:`RenderFile`; raises :class:`ConfigError`."""
+def _model_at(loc: Sequence) -> type[BaseModel] | None:
+    """The config model that holds the key at ``loc`` (for "did you mean" suggestions)."""
+    model: Any = RenderFile
+    for part in loc[:-1]:
+        if isinstance(part, int) or (isinstance(part, str) and part.isdigit()):
+            continue
+        if part in _UNION_TAGS:
+            model = {"ambient": AmbientLightConfig, "directional": DirectionalLightConfig,
+                     "point": PointLightConfig, "spot": SpotLightConfig}[part]
+            continue
+        field = model.model_fields.get(part) if isinstance(model, type) else None
+        if field is None:
+            return None
+        model = _inner_model(field.annotation)
+        if model is None:
+            return None
+    return model if isinstance(model, type) and issubclass(model, BaseModel) else None
+
+
+def _inner_model(annotation: Any) -> type[BaseModel] | None:
+    """The (single) pydantic model inside an annotation like ``list[X] | None``."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    for arg in typing.get_args(annotation):
+        found = _inner_model(arg)
+        if found is not None:
+            return found
+    return None
+
+
+def _message(err: dict) -> str:
+    """A pydantic error message, with a suggestion for a misspelt key."""
+    if err["type"] != "extra_forbidden":
+        return err["msg"]
+    key = str(err["loc"][-1])
+    model = _model_at(err["loc"])
+    names = list(model.model_fields) if model is not None else []
+    close = difflib.get_close_matches(key, names, n=1)
+    hint = f"; did you mean {close[0]!r}?" if close else (
+        f"; expected one of {names}" if names else "")
+    return f"unknown key{hint}"
+
+
+def parse_config(text: str | bytes, source: str = "<string>",
+                 base_dir: Path | None = None) -> RenderFile:
+    """Validate YAML text into a :class:`RenderFile`.
+
+    Args:
+        text: the YAML document (bytes must be UTF-8).
+        source: the file name used in error messages.
+        base_dir: the folder relative paths resolve against (default: the working folder).
+
+    Returns:
+        The validated config.
+
+    Raises:
+        ConfigError: naming ``source``, the line and the key path of every problem.
+    """
+    if isinstance(text, bytes):
+        try:
+            text = text.decode("utf-8-sig")
+        except UnicodeDecodeError as e:
+            raise ConfigError(f"{source}: not UTF-8 text (invalid byte at offset {e.start}); "
+                              "save the config as UTF-8") from None
     try:
         node = yaml.compose(text, Loader=yaml.SafeLoader)
+        if node is not None:
+            _expanded_size(node, source)
         data = yaml.safe_load(text)
     except yaml.MarkedYAMLError as e:
         mark = e.context_mark or e.problem_mark  # where the broken construct starts
@@ -218,6 +597,8 @@ def parse_config(text: str, source: str = "<string>", base_dir: Path | None = No
         raise ConfigError(f"{source}:{line}: malformed YAML: {detail}") from None
     except yaml.YAMLError as e:
         raise ConfigError(f"{source}: malformed YAML: {e}") from None
+    except RecursionError:
+        raise ConfigError(f"{source}: YAML nested too deeply") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{source}: expected a mapping at the top level (scene:, cameras:, ...)")
     lines = _key_lines(node) if node is not None else {}
@@ -230,20 +611,328 @@ def parse_config(text: str, source: str = "<string>", base_dir: Path | None = No
             key = ".".join(str(p) for p in loc) or "(top level)"
             line = _line_of(lines, loc)
             where = f"{source}:{line}" if line else source
-            msgs.append(f"{where}: {key}: {err['msg']}")
+            msgs.append(f"{where}: {key}: {_message(err)}")
         raise ConfigError("invalid render config\n  " + "\n  ".join(msgs)) from None
     cfg.base_dir = base_dir if base_dir is not None else Path(".")
+    cfg._source, cfg._lines = source, lines
+    problems = _duplicate_cameras(cfg)
+    if problems:
+        raise ConfigError("invalid render config\n  " + "\n  ".join(problems))
     return cfg
 
 
 def load_config(path: str | Path) -> RenderFile:
-    """Read and validate a YAML render config; relative paths resolve against its folder."""
+    """Read and validate a YAML render config; relative paths resolve against its folder.
+
+    Raises:
+        ConfigError: naming the file (and line and key path) of every problem.
+    """
     p = Path(path)
     try:
-        text = p.read_text()
+        data = p.read_bytes()
+    except IsADirectoryError:
+        raise ConfigError(f"{p}: is a folder, not a config file") from None
     except OSError as e:
         raise ConfigError(f"{p}: cannot read the config file ({e.strerror})") from None
-    return parse_config(text, source=str(p), base_dir=p.resolve().parent)
+    return parse_config(data, source=str(p), base_dir=p.resolve().parent)
 
 
-__all__ = ["ConfigError", "RenderFile", "load_config", "parse_config"]
+_UNSAFE = re.compile(r"[^A-Za-z0-9._-]+")
+
+
+def safe_name(name: str) -> str:
+    """A file-system-safe name: letters, digits, ``.``, ``_`` and ``-`` kept, any other run
+    of characters replaced by ``_``, no leading dots (so never ``..``); never empty."""
+    cleaned = _UNSAFE.sub("_", name).lstrip(".")
+    return cleaned or "_"
+
+
+def camera_names(cfg: RenderFile) -> list[str]:
+    """The output folder name of every camera (sanitised ``name``, or ``view<index>``)."""
+    return [safe_name(c.name) if c.name is not None else f"view{i}"
+            for i, c in enumerate(cfg.cameras)]
+
+
+def _duplicate_cameras(cfg: RenderFile) -> list[str]:
+    seen: dict[str, int] = {}
+    problems = []
+    for i, name in enumerate(camera_names(cfg)):
+        if name in seen:
+            problems.append(f"{cfg.where('cameras', i, 'name')}: camera name {name!r} is "
+                            f"used by cameras.{seen[name]} too; names must be unique (after "
+                            "sanitising to letters, digits, '.', '_', '-')")
+        seen.setdefault(name, i)
+    return problems
+
+
+def check_config(cfg: RenderFile) -> None:
+    """Find, in one pass before rendering, every problem validation cannot see: missing or
+    unreadable files (mesh, environment, textures) and degenerate cameras.
+
+    Raises:
+        ConfigError: listing each problem as ``file:line: key.path: message``.
+    """
+    problems = []
+
+    def need_file(loc: tuple, relative: str) -> None:
+        p = cfg.resolve(relative)
+        if p.is_dir():
+            problems.append(f"{cfg.where(*loc)}: {p} is a folder, expected a file")
+        elif not p.is_file():
+            problems.append(f"{cfg.where(*loc)}: file not found: {p}")
+
+    need_file(("scene", "mesh"), cfg.scene.mesh)
+    if cfg.environment is not None:
+        need_file(("environment", "path"), cfg.environment.path)
+    for i, m in enumerate(cfg.materials):
+        if m.base_color_texture is not None:
+            need_file(("materials", i, "base_color_texture"), m.base_color_texture)
+    for i, cam in enumerate(cfg.cameras):
+        if cam.look_at is None:
+            continue
+        eye, target, up = (torch.tensor(v, dtype=torch.float64) for v in (
+            cam.look_at.eye, cam.look_at.target, cam.look_at.up))
+        forward = target - eye
+        if float(forward.norm()) <= 1e-12 * max(1.0, float(eye.norm())):
+            problems.append(f"{cfg.where('cameras', i, 'look_at', 'eye')}: eye and target "
+                            "are the same point; the camera has no direction")
+        elif float(torch.linalg.cross(forward, up).norm()) <= 1e-9 * float(
+                forward.norm() * up.norm()):
+            problems.append(f"{cfg.where('cameras', i, 'look_at', 'up')}: up is parallel to "
+                            "the view direction (or zero); pick another up vector")
+    if problems:
+        raise ConfigError("invalid render config\n  " + "\n  ".join(problems))
+
+
+# --------------------------------------------------------------------------- builders
+
+
+def build_post_chain(cfg: PostConfig | dict | None = None) -> PostChain:
+    """The :class:`~torchraster.post.PostChain` of a ``post:`` section (a
+    :class:`PostConfig` or the raw mapping; None: every stage at its default).
+
+    Raises:
+        pydantic.ValidationError: for an invalid raw mapping.
+    """
+    cfg = cfg if isinstance(cfg, PostConfig) else PostConfig.model_validate(cfg or {})
+    d, b, e, a, t = cfg.dof, cfg.bloom, cfg.exposure, cfg.auto_exposure, cfg.tonemap
+    return PostChain(
+        dof=DepthOfField(focus_distance=d.focus_distance, focal_length_mm=d.focal_length_mm,
+                         f_number=d.f_number, sensor_width_mm=d.sensor_width_mm,
+                         max_coc=d.max_coc, levels=d.levels, enabled=d.enabled),
+        bloom=Bloom(threshold=b.threshold, knee=b.knee, intensity=b.intensity,
+                    radius=b.radius, levels=b.levels, karis=b.karis, enabled=b.enabled),
+        exposure=Exposure(ev=e.ev, enabled=e.enabled and not a.enabled),
+        auto_exposure=AutoExposure(key=a.key, min_ev=a.min_ev, max_ev=a.max_ev,
+                                   compensation=e.ev if e.enabled else 0.0,
+                                   metering=a.metering, percentile_low=a.percentile_low,
+                                   percentile_high=a.percentile_high, rate=a.rate,
+                                   enabled=a.enabled),
+        tonemap=ToneMap(curve=t.curve, white=t.white, enabled=t.enabled),
+        encode=EncodeSRGB(enabled=cfg.encode.enabled),
+    )
+
+
+def build_ssao(cfg: PostConfig | SSAOConfig) -> SSAO:
+    """The SSAO module of ``post.ssao`` (or an :class:`SSAOConfig`)."""
+    c = cfg.ssao if isinstance(cfg, PostConfig) else cfg
+    return SSAO(radius=c.radius, samples=c.samples, bias=c.bias, softness=c.softness,
+                blur=c.blur, enabled=c.enabled)
+
+
+def build_renderer(cfg: RenderFile, with_environment: bool) -> Renderer:
+    """The :class:`~torchraster.Renderer` of a config's ``render:`` (and ``post.ssao``)."""
+    r = cfg.render
+    ssao = build_ssao(cfg.post) if cfg.post is not None and cfg.post.ssao.enabled else None
+    return Renderer(r.size, shading=r.shading, supersample=r.supersample,
+                    cull_backfaces=r.cull_backfaces, background=r.background,
+                    environment_background=bool(with_environment and cfg.environment
+                                                and cfg.environment.background),
+                    texture_filter=r.texture_filter, ssao=ssao)
+
+
+def parse_lights(data: object) -> list:
+    """Validate a YAML/JSON list of light dicts into :data:`LightConfig` models.
+
+    Raises ``pydantic.ValidationError`` whose messages carry the key path (e.g. ``1.spot.range``).
+    """
+    return _LIGHT_LIST.validate_python(data)
+
+
+def lights_from_config(
+    configs: Sequence[object],
+    batch: int = 1,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> Lights:
+    """Build :class:`Lights` tensors (the same lights for each of ``batch`` scenes).
+
+    Args:
+        configs: :data:`LightConfig` models or plain dicts (validated with
+            :func:`parse_lights`).
+        batch: batch size B >= 1.
+        device, dtype: of the created tensors.
+
+    Returns:
+        Lights with ``ambient (B, 9, 3)`` (sum of all ambient lights) or None, and
+        directional / point / spot containers with ``L`` = number of lights of each type
+        (None for types that are absent).
+    """
+    if not isinstance(batch, int) or isinstance(batch, bool) or batch < 1:
+        raise ValueError(f"batch: expected a positive int, got {batch!r}")
+    cfgs = parse_lights([c.model_dump() if isinstance(c, BaseModel) else c for c in configs])
+
+    def tensor(rows: list, shape_tail: tuple[int, ...] = ()) -> torch.Tensor:
+        t = torch.tensor(rows, device=device, dtype=dtype).reshape(1, len(rows), *shape_tail)
+        return t.expand(batch, *t.shape[1:]).contiguous()
+
+    def shadows(rows: list) -> torch.Tensor:
+        t = torch.tensor(rows, device=device, dtype=torch.bool).reshape(1, -1)
+        return t.expand(batch, -1).contiguous()
+
+    def inf_if_none(r: float | None) -> float:
+        return math.inf if r is None else r
+
+    by_type: dict[str, list] = {"ambient": [], "directional": [], "point": [], "spot": []}
+    for c in cfgs:
+        by_type[c.type].append(c)
+
+    ambient = None
+    if by_type["ambient"]:
+        sh = torch.zeros(9, 3, dtype=torch.float64)
+        for c in by_type["ambient"]:
+            if c.sh is not None:
+                sh += torch.tensor(c.sh, dtype=torch.float64) * c.intensity
+            else:
+                sh[0] += torch.tensor(c.color, dtype=torch.float64) * c.intensity / SH_C0
+        ambient = sh.to(device=device, dtype=dtype)[None].expand(batch, 9, 3).contiguous()
+
+    directional = point = spot = None
+    if d := by_type["directional"]:
+        directional = DirectionalLights(
+            direction=tensor([c.direction for c in d], (3,)),
+            color=tensor([c.color for c in d], (3,)),
+            intensity=tensor([c.intensity for c in d]),
+            cast_shadows=shadows([c.cast_shadows for c in d]),
+        )
+    if p := by_type["point"]:
+        point = PointLights(
+            position=tensor([c.position for c in p], (3,)),
+            color=tensor([c.color for c in p], (3,)),
+            intensity=tensor([c.intensity for c in p]),
+            range=tensor([inf_if_none(c.range) for c in p]),
+            cast_shadows=shadows([c.cast_shadows for c in p]),
+        )
+    if s := by_type["spot"]:
+        spot = SpotLights(
+            position=tensor([c.position for c in s], (3,)),
+            direction=tensor([c.direction for c in s], (3,)),
+            color=tensor([c.color for c in s], (3,)),
+            intensity=tensor([c.intensity for c in s]),
+            range=tensor([inf_if_none(c.range) for c in s]),
+            inner_cone_angle=tensor([c.inner_cone_angle for c in s]),
+            outer_cone_angle=tensor([c.outer_cone_angle for c in s]),
+            cast_shadows=shadows([c.cast_shadows for c in s]),
+        )
+    return Lights(ambient=ambient, directional=directional, point=point, spot=spot)
+
+
+# --------------------------------------------------------------------------- reference
+
+
+def _type_name(annotation: Any) -> str:
+    """A short readable type of a field annotation (``float >= 0``, ``[float] x 3``, ...)."""
+    origin = typing.get_origin(annotation)
+    args = typing.get_args(annotation)
+    if origin is Annotated:
+        base, *meta = args
+        text = _type_name(base)
+        for m in meta:
+            for attr, sym in (("ge", ">="), ("gt", ">"), ("le", "<="), ("lt", "<")):
+                for c in getattr(m, "metadata", [m]):
+                    if getattr(c, attr, None) is not None:
+                        text += f" {sym} {getattr(c, attr):g}"
+            lo, hi = getattr(m, "min_length", None), getattr(m, "max_length", None)
+            for c in getattr(m, "metadata", []):
+                lo = getattr(c, "min_length", lo)
+                hi = getattr(c, "max_length", hi)
+            if lo is not None and lo == hi:
+                text += f" (exactly {lo})"
+            elif lo:
+                text += f" (at least {lo})"
+        return text
+    if origin is Literal:
+        return " \\| ".join(repr(a) for a in args)
+    if origin in (list, Sequence):
+        return f"list of {_type_name(args[0])}" if args else "list"
+    if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)):
+        return " or ".join(_type_name(a) for a in args if a is not type(None)) + (
+            " or null" if type(None) in args else "")
+    if isinstance(annotation, type):
+        if issubclass(annotation, BaseModel):
+            return f"[{annotation.__name__}](#{annotation.__name__.lower()})"
+        return annotation.__name__
+    return str(annotation).replace("typing.", "")
+
+
+def _default_text(field: Any) -> str:
+    if field.is_required():
+        return "**required**"
+    value = field.default_factory() if field.default_factory is not None else field.default
+    if isinstance(value, BaseModel):
+        return "(section defaults)"
+    if isinstance(value, float) and math.isfinite(value):
+        return f"`{value:g}`"
+    return f"`{value!r}`" if not isinstance(value, Path) else f"`{value}`"
+
+
+def config_reference() -> str:
+    """The config reference as Markdown, generated from the pydantic models (every key with
+    its type, bounds, default and description). ``torchraster schema`` prints it;
+    ``scripts/make_config_docs.py`` writes it to ``docs/config.md``."""
+    order: list[type[BaseModel]] = []
+
+    def visit(model: type[BaseModel]) -> None:
+        if model in order:
+            return
+        order.append(model)
+        for field in model.model_fields.values():
+            for sub in _models_in(field.annotation):
+                visit(sub)
+
+    visit(RenderFile)
+    out = ["# Render config reference", "",
+           "Generated from the pydantic models in `torchraster/config.py` by "
+           "`python scripts/make_config_docs.py` (also `torchraster schema`). Unknown keys "
+           "are errors; paths are relative to the config file; `resolution` is `[H, W]` "
+           "(or one int for a square image). Lights are a list of entries with a `type`.", ""]
+    for model in order:
+        out += [f"## {model.__name__}", ""]
+        doc = inspect.getdoc(model) or ""
+        if doc and model.__module__ == __name__:
+            out += [doc, ""]
+        out += ["| key | type | default | description |", "|---|---|---|---|"]
+        for name, field in model.model_fields.items():
+            if field.exclude:
+                continue
+            desc = (field.description or "").replace("|", "\\|").replace("\n", " ")
+            out.append(f"| `{name}` | {_type_name(field.annotation)} | "
+                       f"{_default_text(field)} | {desc} |")
+        out.append("")
+    return "\n".join(out)
+
+
+def _models_in(annotation: Any) -> list[type[BaseModel]]:
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return [annotation]
+    found = []
+    for arg in typing.get_args(annotation):
+        found += _models_in(arg)
+    return found
+
+
+__all__ = [
+    "ConfigError", "RenderFile", "build_post_chain", "build_renderer", "build_ssao",
+    "camera_names", "check_config", "config_reference", "default_of", "lights_from_config",
+    "load_config", "parse_config", "parse_lights", "safe_name",
+]

@@ -26,7 +26,9 @@ message starts with the file path; trimesh's own exception is chained as the cau
 
 from __future__ import annotations
 
+import io
 import json
+import logging
 import struct
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -45,6 +47,8 @@ from .mesh import (
     vertex_normals,
     vertex_tangents,
 )
+
+log = logging.getLogger("torchraster")
 
 #: File extensions :func:`load_scene` / :func:`load_mesh` accept.
 SUPPORTED_EXTENSIONS = (".obj", ".ply", ".gltf", ".glb")
@@ -285,8 +289,54 @@ def _convert_geometry(
         raise MeshFileError(f"{path}: mesh {name!r}: {e}") from e
 
 
+def missing_textures(path: Path) -> list[str]:
+    """Texture files a mesh file refers to that do not exist (OBJ via its MTL files, .gltf
+    via its image URIs; .glb and .ply embed theirs). Paths as written in the file."""
+    missing = []
+    suffix = path.suffix.lower()
+    if suffix == ".obj":
+        for line in _read_text(path).splitlines():
+            if line.strip().startswith("mtllib"):
+                mtl = path.parent / line.split(None, 1)[1].strip()
+                if not mtl.is_file():
+                    missing.append(mtl.name)
+                    continue
+                for mline in _read_text(mtl).splitlines():
+                    words = mline.split()
+                    if words and words[0].lower().startswith(("map_", "bump", "disp", "norm")):
+                        # the file name is the tail after any options; it may hold spaces
+                        tails = [" ".join(words[k:]) for k in range(1, len(words))]
+                        if tails and not any((mtl.parent / t).is_file() for t in tails):
+                            missing.append(tails[-1] if len(words) > 2 and words[-2][:1] == "-"
+                                           else " ".join(words[1:]))
+    elif suffix == ".gltf":
+        header = _gltf_header(path) or {}
+        for image in header.get("images", []):
+            uri = image.get("uri")
+            if uri and not uri.startswith("data:"):
+                from urllib.parse import unquote
+
+                if not (path.parent / unquote(uri)).is_file():
+                    missing.append(uri)
+    return missing
+
+
+def _read_text(path: Path) -> str:
+    """A text file as str: UTF-8, else Latin-1 (every byte decodes; OBJ/MTL keywords are
+    ASCII, so names with other encodings survive as text)."""
+    data = path.read_bytes()
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        return data.decode("latin-1")
+
+
 def load_scene(
-    path: str | Path, *, process: bool = False, max_texture_size: int | None = None
+    path: str | Path,
+    *,
+    process: bool = False,
+    max_texture_size: int | None = None,
+    allow_missing_textures: bool = False,
 ) -> Scene:
     """Load every triangle-mesh instance of an OBJ / PLY / glTF / GLB file.
 
@@ -300,7 +350,15 @@ def load_scene(
         process: passed to trimesh; False keeps vertices exactly as in the file.
         max_texture_size: if given, textures are downscaled so the longer side is at most
             this (saves memory: DamagedHelmet's five 2048^2 maps).
-    Returns: a :class:`Scene`. Raises :class:`MeshFileError` / ``FileNotFoundError``.
+        allow_missing_textures: render materials whose texture files are missing without
+            those textures (logged as a warning) instead of raising.
+
+    Returns:
+        A :class:`Scene`.
+
+    Raises:
+        MeshFileError: naming the file (unreadable, no triangles, missing textures).
+        FileNotFoundError: the file does not exist.
     """
     import trimesh
 
@@ -309,8 +367,28 @@ def load_scene(
         not isinstance(max_texture_size, int) or max_texture_size < 1
     ):
         raise ValueError(f"max_texture_size: expected a positive int, got {max_texture_size!r}")
+    missing = missing_textures(p)
+    if missing and not allow_missing_textures:
+        raise MeshFileError(f"{p}: texture file(s) not found: {', '.join(missing)} (pass "
+                            "allow_missing_textures=True / --allow-missing-textures to render "
+                            "without them)")
+    if missing:
+        log.warning("%s: texture file(s) not found, rendering without them: %s", p,
+                    ", ".join(missing))
     try:
-        loaded = trimesh.load(str(p), force="scene", process=bool(process))
+        if p.suffix.lower() == ".obj":  # decode ourselves: any encoding, no charset detector
+            with open(p, "rb") as fh:
+                head = fh.read()
+            try:
+                head.decode("utf-8")
+                loaded = trimesh.load(str(p), force="scene", process=bool(process))
+            except UnicodeDecodeError:
+                loaded = trimesh.load(
+                    io.BytesIO(head.decode("latin-1").encode("utf-8")), file_type="obj",
+                    force="scene", process=bool(process),
+                    resolver=trimesh.resolvers.FilePathResolver(str(p)))
+        else:
+            loaded = trimesh.load(str(p), force="scene", process=bool(process))
     except Exception as e:  # trimesh raises anything from KeyError to struct.error
         raise MeshFileError(
             f"{p}: cannot read as {p.suffix.lower()} ({type(e).__name__}: {e})"
@@ -356,7 +434,11 @@ def load_scene(
 
 
 def load_mesh(
-    path: str | Path, *, process: bool = False, max_texture_size: int | None = None
+    path: str | Path,
+    *,
+    process: bool = False,
+    max_texture_size: int | None = None,
+    allow_missing_textures: bool = False,
 ) -> Mesh:
     """Load a file as one world-space :class:`~torchraster.mesh.Mesh` (node transforms
     applied) with its single material (None for files without one).
@@ -365,7 +447,8 @@ def load_mesh(
     pointing at :func:`load_scene` / :meth:`Scene.flatten`. Several instances sharing one
     material are merged. Arguments as in :func:`load_scene`.
     """
-    scene = load_scene(path, process=process, max_texture_size=max_texture_size)
+    scene = load_scene(path, process=process, max_texture_size=max_texture_size,
+                       allow_missing_textures=allow_missing_textures)
     mats = scene.materials
     if len(mats) > 1:
         raise MeshFileError(

@@ -4,50 +4,75 @@
     cfg = tr.load_config("configs/quickstart.yaml")
     tr.render_to_files(cfg, "out/")          # or: views = tr.render_config(cfg)
 
-Every file is written atomically (a temporary file in the same folder, then a rename), so a
-crash never leaves a half-written image behind.
+Every file is written atomically (a temporary file ``.<name>.trtmp-XXXX<suffix>`` in the
+same folder, then a rename) with the permissions a plain ``open()`` would give under the
+user's umask, so a crash never leaves a half-written image behind; temporary files left by
+a killed run are swept from a folder before it is written again.
 """
 
 from __future__ import annotations
 
+import errno
 import importlib.util
 import math
 import os
 import tempfile
-from collections.abc import Iterator
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-import kornia
 import numpy as np
 import torch
 
 from . import camera
-from .config import CameraConfig, ConfigError, RenderFile, TransformConfig
+from .config import (
+    CameraConfig,
+    ConfigError,
+    RenderFile,
+    TransformConfig,
+    build_post_chain,
+    build_renderer,
+    camera_names,
+    check_config,
+    lights_from_config,
+)
 from .hdr_io import read_hdr
 from .io import load_scene, load_texture
 from .material import Material
 from .mesh import flat as flat_mesh
-from .post.chain import PostChain, build_ssao
-from .renderer import Renderer, RenderScene
+from .post import EncodeSRGB, PostChain
+from .renderer import RenderPlan
+from .scene import RenderScene
 from .shading.ibl import Environment
-from .shading.lights import lights_from_config
 
-_SRGB_CHANNELS = {"albedo", "emissive"}  # linear G-buffer colours; "color" is encoded
+#: Linear colour channels: encoded to sRGB for PNG.
+_SRGB_CHANNELS = {"albedo", "emissive", "radiance"}
+#: Marker in the names of our temporary files (swept when found at start).
+TEMP_MARKER = ".trtmp-"
 
 
 @dataclass
 class ViewResult:
-    """One rendered camera: ``name`` and ``images`` {channel: (C, H, W) float tensor}
-    (color already tone mapped / encoded to display sRGB in [0, 1]), plus the ``plan``."""
+    """One rendered camera.
+
+    Attributes:
+        name: the camera's output name (sanitised, unique in its config).
+        images: ``{channel: (C, H, W) float tensor}``: ``color`` display-encoded in
+            [0, 1], ``radiance`` linear HDR, G-buffer channels raw.
+        plan: the :class:`~torchraster.RenderPlan` that ran.
+        mask: ``(1, H, W)`` coverage > 0, for the display encodings.
+    """
 
     name: str
     images: dict[str, torch.Tensor]
-    plan: list[str]
+    plan: RenderPlan
+    mask: torch.Tensor = field(repr=False, default_factory=lambda: torch.ones(1, 1, 1))
 
 
 def _transform_matrix(t: TransformConfig) -> torch.Tensor:
     """(4, 4) model -> world: scale, then rotations about x, y, z (degrees), then translate."""
+    import kornia
+
     scale = torch.tensor(t.scale if isinstance(t.scale, list) else [t.scale] * 3)
     angles = torch.deg2rad(torch.tensor(t.rotate_deg))[None]
     rx, ry, rz = (kornia.geometry.conversions.axis_angle_to_rotation_matrix(
@@ -62,7 +87,8 @@ def build_scene(cfg: RenderFile) -> RenderScene:
     """Load and transform the config's scene into a :class:`RenderScene` (names the file on
     error)."""
     path = cfg.resolve(cfg.scene.mesh)
-    scene = load_scene(path, max_texture_size=cfg.scene.max_texture_size)
+    scene = load_scene(path, max_texture_size=cfg.scene.max_texture_size,
+                       allow_missing_textures=cfg.scene.allow_missing_textures)
     mesh, face_material, materials = scene.flatten()
     if cfg.scene.normals == "flat":
         mesh = flat_mesh(mesh)
@@ -101,8 +127,14 @@ def _override(mat: Material | None, cfg: RenderFile) -> Material | None:
 
 def build_camera(cam: CameraConfig, positions: torch.Tensor, resolution: tuple[int, int]
                  ) -> tuple[torch.Tensor, torch.Tensor]:
-    """World -> view and projection matrices (1, 4, 4) of one camera, framing the scene's
-    bounding sphere where distances or planes are left out."""
+    """World -> view and projection matrices ``(1, 4, 4)`` of one camera, framing the
+    scene's bounding sphere where distances or planes are left out.
+
+    Args:
+        cam: the camera's config.
+        positions: ``(V, 3)`` world positions of the scene.
+        resolution: ``(H, W)``.
+    """
     h, w = resolution
     lo, hi = positions.amin(0), positions.amax(0)
     center = (lo + hi) / 2
@@ -133,9 +165,9 @@ def build_camera(cam: CameraConfig, positions: torch.Tensor, resolution: tuple[i
 
 
 def _encode(name: str, img: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Display encoding of a G-buffer channel (C, H, W) in [0, 1] for PNG."""
+    """Display encoding of a channel ``(C, H, W)`` in [0, 1] for PNG (see the README)."""
     if name in _SRGB_CHANNELS:
-        return kornia.color.linear_rgb_to_rgb(img.clamp(0, 1)[None])[0]
+        return EncodeSRGB()(img.clamp(0, 1)[None])[0]
     if name == "normal":
         return (img * 0.5 + 0.5) * mask
     if name == "depth":  # near = bright, far = dark, empty = black
@@ -154,12 +186,18 @@ def _encode(name: str, img: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 
 def render_config(cfg: RenderFile, device: str | torch.device = "cpu") -> list[ViewResult]:
     """Render every camera of a config. Returns one :class:`ViewResult` per camera."""
-    return list(iter_render(cfg, device))
+    return [render() for render in iter_render(cfg, device)]
 
 
-def iter_render(cfg: RenderFile, device: str | torch.device = "cpu") -> Iterator[ViewResult]:
-    """Render the cameras of a config one by one (scene, lights and environment are loaded
-    and precomputed once), yielding a :class:`ViewResult` per camera."""
+def iter_render(cfg: RenderFile, device: str | torch.device = "cpu"
+                ) -> Iterator[Callable[[], ViewResult]]:
+    """The views of a config, lazily: scene, lights and environment are loaded once, then
+    each yielded callable renders one camera (so a caller can report a failing view and
+    carry on with the next).
+
+    Yields:
+        Callables returning a :class:`ViewResult`, one per camera, in order.
+    """
     scene = build_scene(cfg)
     scene = RenderScene(*(t.to(device) if isinstance(t, torch.Tensor) else t for t in (
         scene.positions, scene.faces, scene.normals, scene.uvs, scene.tangents,
@@ -171,64 +209,95 @@ def iter_render(cfg: RenderFile, device: str | torch.device = "cpu") -> Iterator
         radiance = read_hdr(cfg.resolve(cfg.environment.path)).to(device)
         env = Environment(radiance, yaw=math.radians(cfg.environment.rotation_deg),
                           intensity=cfg.environment.intensity)
-    post = PostChain.from_config(cfg.post) if cfg.post is not None else None
-    ssao = build_ssao(cfg.post) if cfg.post is not None and cfg.post.ssao.enabled else None
-    renderer = Renderer(res, shading=cfg.render.shading, supersample=cfg.render.supersample,
-                        cull_backfaces=cfg.render.cull_backfaces,
-                        background=cfg.render.background,
-                        environment_background=bool(env and cfg.environment.background),
-                        ssao=ssao)
-    channels = set(cfg.outputs.channels) - {"color", "alpha"}
-    if post is not None and post.dof.enabled:
+    # Without a post section: no tone mapping, sRGB encoding only (the linear image clipped).
+    post = build_post_chain(cfg.post) if cfg.post is not None else PostChain(
+        encode=EncodeSRGB())
+    renderer = build_renderer(cfg, env is not None)
+    channels = set(cfg.outputs.channels) - {"color", "radiance", "alpha"}
+    if post.dof.enabled:
         channels.add("depth")
-    for i, cam in enumerate(cfg.cameras):
+    names = camera_names(cfg)
+
+    def render_view(i: int, cam: CameraConfig) -> ViewResult:
         view, proj = build_camera(cam, scene.positions.cpu(), res)
         with torch.no_grad():
             out = renderer(scene, view.to(device), proj.to(device), lights, env, channels)
-            if post is not None:
-                depth = out.gbuffer.get("depth")
-                if depth is not None:  # the background is far away for depth of field
-                    far = depth.amax().clamp(min=1.0) * 100
-                    depth = torch.where(out.alpha > 0, depth, far)
-                color = post(out.image, depth=depth)
-            else:
-                color = kornia.color.linear_rgb_to_rgb(out.image.clamp(0, 1))
-        images = {"color": color[0], "alpha": out.alpha[0]}
+            depth = out.gbuffer.get("depth")
+            if depth is not None:  # the background is far away for depth of field
+                far = depth.amax().clamp(min=1.0) * 100
+                depth = torch.where(out.alpha > 0, depth, far)
+            radiance = post.hdr(out.image, depth=depth)
+            color = post.display(radiance.clamp(min=0) if post.tonemap.enabled
+                                 else radiance.clamp(0, 1))
+        images = {"color": color[0], "radiance": radiance[0], "alpha": out.alpha[0]}
         images.update({k: v[0] for k, v in out.gbuffer.items()})
-        mask = (out.alpha[0] > 0).to(color.dtype)
         images = {k: v for k, v in images.items() if k in cfg.outputs.channels}
-        result = ViewResult(cam.name or f"view{i}", images, out.plan)
-        result.mask = mask  # used by write_outputs for display encodings
-        yield result
+        return ViewResult(names[i], images, out.plan, (out.alpha[0] > 0).to(color.dtype))
+
+    for i, cam in enumerate(cfg.cameras):
+        yield lambda i=i, cam=cam: render_view(i, cam)
 
 
-def _atomic_write(path: Path, write) -> None:
+def _umask_mode() -> int:
+    """The mode a plain ``open(path, "w")`` gives a new file: 0o666 minus the umask."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+class OutputError(OSError):
+    """Writing an output file failed; the message names the file and the reason."""
+
+
+def _atomic_write(path: Path, write: Callable[[str], None]) -> None:
     """Write through a temporary file in the same folder, then rename over ``path``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix="." + path.stem + ".", suffix=path.suffix)
-    os.close(fd)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}{TEMP_MARKER}",
+                                   suffix=path.suffix)
+        os.close(fd)
+    except OSError as e:
+        raise OutputError(f"{path}: cannot write ({e.strerror or e})") from None
     try:
         write(tmp)
+        os.chmod(tmp, _umask_mode())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(e, OSError):
+            reason = "disk full" if e.errno == errno.ENOSPC else (e.strerror or str(e))
+            raise OutputError(f"{path}: cannot write ({reason})") from None
         raise
 
 
+def sweep_temp_files(folder: Path) -> list[Path]:
+    """Delete temporary files a killed run left in ``folder`` (our naming pattern only)."""
+    removed = []
+    if folder.is_dir():
+        for p in folder.glob(f".*{TEMP_MARKER}*"):
+            if p.is_file():
+                p.unlink(missing_ok=True)
+                removed.append(p)
+    return removed
+
+
 def write_outputs(result: ViewResult, out_dir: str | Path, formats: list[str]) -> list[Path]:
-    """Write a view's channels as ``<out_dir>/<channel>.<fmt>``; returns the written paths."""
+    """Write a view's channels as ``<out_dir>/<channel>.<fmt>``; returns the written paths.
+
+    Raises:
+        OutputError: naming the file that could not be written.
+    """
     from skimage import io as skio
 
     out_dir = Path(out_dir)
+    sweep_temp_files(out_dir)
     written = []
-    mask = getattr(result, "mask", None)
     for name, img in result.images.items():
         img = img.detach().float().cpu()
         raw = img.numpy()
         if "png" in formats:
-            m = mask if mask is not None else torch.ones_like(img[:1])
-            enc = _encode(name, img.to(torch.float64) if name == "face_id" else img, m)
+            enc = _encode(name, img.to(torch.float64) if name == "face_id" else img, result.mask)
             bits16 = name in ("depth", "face_id")
             arr = enc.clamp(0, 1).permute(1, 2, 0).numpy()
             arr = (arr * (65535 if bits16 else 255) + 0.5).astype(np.uint16 if bits16 else np.uint8)
@@ -263,12 +332,45 @@ def check_formats(cfg: RenderFile, source: str) -> None:
                           "(pip install 'torchraster[exr]')")
 
 
+def check_output_dir(out_dir: Path) -> None:
+    """Fail before rendering if ``out_dir`` cannot hold outputs (a file, or not writable).
+
+    Raises:
+        OutputError: naming the folder.
+    """
+    probe = out_dir
+    while not probe.exists():
+        probe = probe.parent
+    if not probe.is_dir():
+        raise OutputError(f"{probe}: --out must be a folder, but this is a file")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise OutputError(f"{probe}: output folder is not writable")
+
+
+def view_folder(out_dir: Path, cfg: RenderFile, name: str) -> Path:
+    """The folder of one view: ``out_dir`` (one camera) or ``out_dir/<name>``, checked to
+    stay inside ``out_dir``."""
+    folder = out_dir / name if len(cfg.cameras) > 1 else out_dir
+    root = out_dir.resolve()
+    if folder.resolve() != root and root not in folder.resolve().parents:
+        raise OutputError(f"{folder}: outside the output folder {out_dir}")
+    return folder
+
+
 def render_to_files(cfg: RenderFile, out_dir: str | Path, device: str = "cpu") -> list[Path]:
     """Render every camera of ``cfg`` into ``out_dir`` (one sub-folder per camera when there
-    are several). Returns the written paths."""
+    are several). Returns the written paths.
+
+    Raises:
+        ConfigError: every missing file / degenerate camera, before rendering.
+        OutputError: an unwritable output.
+    """
+    out_dir = Path(out_dir)
+    check_config(cfg)
     check_formats(cfg, "config")
+    check_output_dir(out_dir)
     written = []
-    for r in iter_render(cfg, device):
-        folder = Path(out_dir) / r.name if len(cfg.cameras) > 1 else Path(out_dir)
-        written += write_outputs(r, folder, cfg.outputs.formats)
+    for render in iter_render(cfg, device):
+        r = render()
+        written += write_outputs(r, view_folder(out_dir, cfg, r.name), cfg.outputs.formats)
     return written

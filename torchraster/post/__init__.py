@@ -7,28 +7,17 @@ identity that returns its input object without doing any work.
 
 from .bloom import Bloom, bloom_levels, bright_pass, downsample13, upsample_tent
 from .blur import GaussianBlur, gaussian_blur, gaussian_kernel1d, separable_filter
-from .chain import (
-    AutoExposureConfig,
-    BloomConfig,
-    DOFConfig,
-    EncodeConfig,
-    ExposureConfig,
-    PostChain,
-    PostConfig,
-    SSAOConfig,
-    ToneMapConfig,
-    build_ssao,
-)
+from .chain import PostChain
 from .dof import DepthOfField, circle_of_confusion, depth_of_field
 from .exposure import AutoExposure, luminance, metered_log2_luminance
 from .ssao import SSAO, projection_to_intrinsics, ssao
 from .tonemap import CURVES, EncodeSRGB, Exposure, ToneMap, encode_srgb, tone_curve
 
 __all__ = [
-    "CURVES", "SSAO", "AutoExposure", "AutoExposureConfig", "Bloom", "BloomConfig",
-    "DOFConfig", "DepthOfField", "EncodeConfig", "EncodeSRGB", "Exposure", "ExposureConfig",
-    "GaussianBlur", "PostChain", "PostConfig", "SSAOConfig", "ToneMap", "ToneMapConfig",
-    "bloom_levels", "bright_pass", "build_ssao", "circle_of_confusion", "depth_of_field",
+    "CURVES", "SSAO", "AutoExposure", "Bloom",
+    "DepthOfField", "EncodeSRGB", "Exposure",
+    "GaussianBlur", "PostChain", "ToneMap",
+    "bloom_levels", "bright_pass", "circle_of_confusion", "depth_of_field",
     "downsample13", "encode_srgb", "gaussian_blur", "gaussian_kernel1d", "luminance",
     "metered_log2_luminance", "projection_to_intrinsics", "separable_filter", "ssao",
     "tone_curve", "upsample_tent",

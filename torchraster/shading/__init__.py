@@ -1,7 +1,7 @@
 """Shading: BRDFs, shading models, lights and the deferred lighting pass.
 
 Submodules: ``brdf`` (GGX, Smith, Schlick, Lambert, Cook-Torrance), ``models`` (shading
-models by name), ``lights`` (batched lights + YAML schema), ``lighting`` (deferred pass).
+models by name), ``lights`` (batched lights), ``lighting`` (deferred pass).
 """
 
 from torchraster.shading.brdf import (
@@ -15,12 +15,9 @@ from torchraster.shading.brdf import (
 from torchraster.shading.lighting import shade
 from torchraster.shading.lights import (
     DirectionalLights,
-    LightConfig,
     Lights,
     PointLights,
     SpotLights,
-    lights_from_config,
-    parse_lights,
 )
 from torchraster.shading.models import MODELS, Surface, get_model
 
@@ -28,7 +25,6 @@ __all__ = [
     "MIN_ROUGHNESS",
     "MODELS",
     "DirectionalLights",
-    "LightConfig",
     "Lights",
     "PointLights",
     "SpotLights",
@@ -38,8 +34,6 @@ __all__ = [
     "f_schlick",
     "fd_lambert",
     "get_model",
-    "lights_from_config",
-    "parse_lights",
     "shade",
     "v_smith_ggx_correlated",
 ]

@@ -22,20 +22,17 @@ coefficients ``(B, 9, 3)`` (order and normalisation of Ramamoorthi & Hanrahan 20
 direction ``l`` to the light and the illuminance ``E`` (lux, RGB) arriving perpendicular
 to ``l``; a shading model turns them into radiance.
 
-The YAML schema is the pydantic union :data:`LightConfig`; :func:`lights_from_config`
-turns a list of configs into :class:`Lights` tensors.
+The YAML schema of lights lives in :mod:`torchraster.config` (``lights_from_config``
+builds these containers from it); the defaults below are the one place both use.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Annotated, Literal
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, field_validator, model_validator
 
 from torchraster._validate import check_radiance, check_tensor
 from torchraster.shading.brdf import safe_normalize
@@ -43,6 +40,14 @@ from torchraster.shading.brdf import safe_normalize
 #: Closest distance (m) a point / spot light is evaluated at: ``E = I / max(d^2, 1e-4)``
 #: (Filament ``getDistanceAttenuation``, 1 cm). Keeps E finite at the light's position.
 MIN_LIGHT_DISTANCE: float = 0.01
+
+#: Defaults of glTF KHR_lights_punctual: white light of intensity 1, travelling along -Z,
+#: spot cone from 0 to pi/4 (radians).
+DEFAULT_COLOR: tuple[float, float, float] = (1.0, 1.0, 1.0)
+DEFAULT_INTENSITY: float = 1.0
+DEFAULT_DIRECTION: tuple[float, float, float] = (0.0, 0.0, -1.0)
+DEFAULT_INNER_CONE_ANGLE: float = 0.0
+DEFAULT_OUTER_CONE_ANGLE: float = math.pi / 4
 
 #: Floor of ``cos(inner) - cos(outer)`` in the spot falloff (glTF KHR_lights_punctual's
 #: reference implementation and Filament use 1e-3); makes inner == outer a hard edge.
@@ -188,9 +193,9 @@ class SpotLights(_LightSet):
         if self.range is None:
             self.range = torch.full_like(self.intensity, math.inf)
         if self.inner_cone_angle is None:
-            self.inner_cone_angle = torch.zeros_like(self.intensity)
+            self.inner_cone_angle = torch.full_like(self.intensity, DEFAULT_INNER_CONE_ANGLE)
         if self.outer_cone_angle is None:
-            self.outer_cone_angle = torch.full_like(self.intensity, math.pi / 4)
+            self.outer_cone_angle = torch.full_like(self.intensity, DEFAULT_OUTER_CONE_ANGLE)
         b, n = _check_common(self)
         if bool((self.range <= 0).any()) or bool(torch.isnan(self.range).any()):
             raise ValueError("SpotLights.range: must be > 0 (inf for no range)")
@@ -418,164 +423,3 @@ def spot_incidence(
         _per_light(lights.outer_cone_angle[..., None]),
     )
     return l, e * cone
-
-
-# --------------------------------------------------------------------------- YAML schema
-
-_NonNeg = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
-Vec3 = Annotated[list[Annotated[float, Field(allow_inf_nan=False)]],
-                 Field(min_length=3, max_length=3)]
-Color = Annotated[list[_NonNeg], Field(min_length=3, max_length=3)]
-
-
-class _LightConfigBase(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-    name: str | None = None
-    color: Color = Field(default_factory=lambda: [1.0, 1.0, 1.0])
-    intensity: _NonNeg = 1.0
-
-
-class _DirectionMixin(BaseModel):
-    @field_validator("direction", check_fields=False)
-    @classmethod
-    def check_direction(cls, v: list[float]) -> list[float]:
-        if sum(x * x for x in v) <= 0.0:
-            raise ValueError("direction must not be the zero vector")
-        return v
-
-
-class AmbientLightConfig(_LightConfigBase):
-    """Constant ambient radiance ``color * intensity`` (nits), or ``sh``: 9 RGB SH
-    coefficients of the incident radiance (scaled by ``intensity``, ``color`` ignored)."""
-
-    type: Literal["ambient"]
-    sh: Annotated[list[Vec3], Field(min_length=9, max_length=9)] | None = None
-
-
-class DirectionalLightConfig(_DirectionMixin, _LightConfigBase):
-    """Directional light: ``direction`` the light travels (default -Z, glTF), lux."""
-
-    type: Literal["directional"]
-    direction: Vec3 = Field(default_factory=lambda: [0.0, 0.0, -1.0])
-    cast_shadows: bool = False
-
-
-class PointLightConfig(_LightConfigBase):
-    """Point light at ``position``; ``intensity`` in candela, optional ``range`` (m)."""
-
-    type: Literal["point"]
-    position: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
-    range: Annotated[float, Field(gt=0.0)] | None = None
-    cast_shadows: bool = False
-
-
-class SpotLightConfig(_DirectionMixin, PointLightConfig):
-    """Spot light: a point light limited to a cone around ``direction`` (default -Z)."""
-
-    type: Literal["spot"]  # type: ignore[assignment]
-    direction: Vec3 = Field(default_factory=lambda: [0.0, 0.0, -1.0])
-    inner_cone_angle: Annotated[float, Field(ge=0.0, le=math.pi / 2)] = 0.0
-    outer_cone_angle: Annotated[float, Field(gt=0.0, le=math.pi / 2)] = math.pi / 4
-
-    @model_validator(mode="after")
-    def _cones(self) -> SpotLightConfig:
-        if self.inner_cone_angle >= self.outer_cone_angle:
-            raise ValueError(
-                f"inner_cone_angle ({self.inner_cone_angle}) must be < outer_cone_angle "
-                f"({self.outer_cone_angle}) (radians)"
-            )
-        return self
-
-
-LightConfig = Annotated[
-    AmbientLightConfig | DirectionalLightConfig | PointLightConfig | SpotLightConfig,
-    Field(discriminator="type"),
-]
-_LIGHT_LIST = TypeAdapter(list[LightConfig])
-
-
-def parse_lights(data: object) -> list:
-    """Validate a YAML/JSON list of light dicts into :data:`LightConfig` models.
-
-    Raises ``pydantic.ValidationError`` whose messages carry the key path (e.g. ``1.spot.range``).
-    """
-    return _LIGHT_LIST.validate_python(data)
-
-
-def lights_from_config(
-    configs: Sequence[object],
-    batch: int = 1,
-    device: torch.device | str | None = None,
-    dtype: torch.dtype = torch.float32,
-) -> Lights:
-    """Build :class:`Lights` tensors (the same lights for each of ``batch`` scenes).
-
-    Args:
-        configs: :data:`LightConfig` models or plain dicts (validated with
-            :func:`parse_lights`).
-        batch: batch size B >= 1.
-        device, dtype: of the created tensors.
-
-    Returns:
-        Lights with ``ambient (B, 9, 3)`` (sum of all ambient lights) or None, and
-        directional / point / spot containers with ``L`` = number of lights of each type
-        (None for types that are absent).
-    """
-    if not isinstance(batch, int) or isinstance(batch, bool) or batch < 1:
-        raise ValueError(f"batch: expected a positive int, got {batch!r}")
-    cfgs = parse_lights([c.model_dump() if isinstance(c, BaseModel) else c for c in configs])
-
-    def tensor(rows: list, shape_tail: tuple[int, ...] = ()) -> torch.Tensor:
-        t = torch.tensor(rows, device=device, dtype=dtype).reshape(1, len(rows), *shape_tail)
-        return t.expand(batch, *t.shape[1:]).contiguous()
-
-    def shadows(rows: list) -> torch.Tensor:
-        t = torch.tensor(rows, device=device, dtype=torch.bool).reshape(1, -1)
-        return t.expand(batch, -1).contiguous()
-
-    def inf_if_none(r: float | None) -> float:
-        return math.inf if r is None else r
-
-    by_type: dict[str, list] = {"ambient": [], "directional": [], "point": [], "spot": []}
-    for c in cfgs:
-        by_type[c.type].append(c)
-
-    ambient = None
-    if by_type["ambient"]:
-        sh = torch.zeros(9, 3, dtype=torch.float64)
-        for c in by_type["ambient"]:
-            if c.sh is not None:
-                sh += torch.tensor(c.sh, dtype=torch.float64) * c.intensity
-            else:
-                sh[0] += torch.tensor(c.color, dtype=torch.float64) * c.intensity / SH_C0
-        ambient = sh.to(device=device, dtype=dtype)[None].expand(batch, 9, 3).contiguous()
-
-    directional = point = spot = None
-    if d := by_type["directional"]:
-        directional = DirectionalLights(
-            direction=tensor([c.direction for c in d], (3,)),
-            color=tensor([c.color for c in d], (3,)),
-            intensity=tensor([c.intensity for c in d]),
-            cast_shadows=shadows([c.cast_shadows for c in d]),
-        )
-    if p := by_type["point"]:
-        point = PointLights(
-            position=tensor([c.position for c in p], (3,)),
-            color=tensor([c.color for c in p], (3,)),
-            intensity=tensor([c.intensity for c in p]),
-            range=tensor([inf_if_none(c.range) for c in p]),
-            cast_shadows=shadows([c.cast_shadows for c in p]),
-        )
-    if s := by_type["spot"]:
-        spot = SpotLights(
-            position=tensor([c.position for c in s], (3,)),
-            direction=tensor([c.direction for c in s], (3,)),
-            color=tensor([c.color for c in s], (3,)),
-            intensity=tensor([c.intensity for c in s]),
-            range=tensor([inf_if_none(c.range) for c in s]),
-            inner_cone_angle=tensor([c.inner_cone_angle for c in s]),
-            outer_cone_angle=tensor([c.outer_cone_angle for c in s]),
-            cast_shadows=shadows([c.cast_shadows for c in s]),
-        )
-    return Lights(ambient=ambient, directional=directional, point=point, spot=spot)
