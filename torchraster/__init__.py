@@ -34,8 +34,8 @@ __all__ = [
     "CHANNELS", "ConfigError", "DirectionalLights", "Environment", "Fragments", "GBuffer",
     "Lights", "Material", "Mesh", "MeshFileError", "NotImplementedWarning", "PointLights",
     "RenderOutput", "RenderPlan", "RenderScene", "Renderer", "Scene", "SpotLights", "camera",
-    "geometry_pass", "interpolate", "lights_from_config", "load_config", "load_mesh", "load_scene", "load_spot",
-    "pack_meshes", "parse_config", "post", "rasterize", "read_hdr", "render_config",
-    "render_to_files", "sh_from_color", "shade", "shading", "vertex_normals",
+    "geometry_pass", "interpolate", "lights_from_config", "load_config", "load_mesh",
+    "load_scene", "load_spot", "pack_meshes", "parse_config", "post", "rasterize", "read_hdr",
+    "render_config", "render_to_files", "sh_from_color", "shade", "shading", "vertex_normals",
 ]
 __version__ = "0.1.0"
