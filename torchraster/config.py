@@ -682,6 +682,15 @@ def check_config(cfg: RenderFile) -> None:
             problems.append(f"{cfg.where(*loc)}: file not found: {p}")
 
     need_file(("scene", "mesh"), cfg.scene.mesh)
+    mesh = cfg.resolve(cfg.scene.mesh)
+    if mesh.is_file() and not cfg.scene.allow_missing_textures:
+        from .io import missing_textures
+
+        missing = missing_textures(mesh)
+        if missing:
+            problems.append(f"{cfg.where('scene', 'mesh')}: {mesh.name} refers to missing "
+                            f"texture file(s) {', '.join(missing)} (set "
+                            "scene.allow_missing_textures: true to render without them)")
     if cfg.environment is not None:
         need_file(("environment", "path"), cfg.environment.path)
     for i, m in enumerate(cfg.materials):

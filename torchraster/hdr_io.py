@@ -19,6 +19,7 @@ loaders); the Radiance convention is that stored values are linear radiance in W
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 from pathlib import Path
@@ -26,7 +27,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-__all__ = ["read_hdr", "write_hdr", "read_exr"]
+from ._validate import check_frame_memory
+
+log = logging.getLogger("torchraster")
+
+__all__ = ["read_exr", "read_hdr", "sanitize_radiance", "write_hdr"]
 
 _RES_RE = re.compile(rb"^([-+])Y\s+(\d+)\s+([-+])X\s+(\d+)\s*$")
 _EXR_HINT = "reading .exr needs the optional OpenEXR package: pip install 'torchraster[exr]'"
@@ -52,6 +57,9 @@ def read_hdr(path: str | os.PathLike) -> torch.Tensor:
     data = path.read_bytes()
     try:
         header_end, height, width, flip_y, flip_x = _parse_header(data)
+        _check_size(data, header_end, height, width)
+        check_frame_memory(f"read_hdr: {path}", height * width, _DECODE_BYTES_PER_PIXEL,
+                           torch.device("cpu"))
         rgbe = _decode_pixels(data, header_end, height, width)
     except ValueError as err:
         raise ValueError(f"read_hdr: {path}: {err}") from None
@@ -61,6 +69,24 @@ def read_hdr(path: str | os.PathLike) -> torch.Tensor:
     if flip_x:
         img = img[:, ::-1]
     return torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1)))
+
+
+#: Peak bytes per pixel while decoding RLE data (int64 gather indices for 4 bytes, the
+#: RGBE bytes and the float32 result).
+_DECODE_BYTES_PER_PIXEL = 4 * 8 * 3 + 4 + 12
+
+
+def _check_size(data: bytes, start: int, height: int, width: int) -> None:
+    """Refuse a resolution the file cannot hold: every scanline needs at least its 4-byte
+    header plus, per byte plane, one 2-byte run per 127 pixels (so an "RLE bomb" that claims
+    a huge image from a small file fails here, before anything is allocated)."""
+    if 8 <= width < 32768:
+        least = height * (4 + 4 * 2 * -(-width // 127))
+    else:
+        least = height * width * 4
+    if len(data) - start < least:
+        raise ValueError(f"{height}x{width} pixels cannot fit in {len(data) - start} bytes of "
+                         f"pixel data (at least {least} needed): truncated or corrupt")
 
 
 def _parse_header(data: bytes) -> tuple[int, int, int, bool, bool]:
@@ -220,13 +246,46 @@ def read_exr(path: str | os.PathLike) -> torch.Tensor:
     """Read the R, G, B channels of an OpenEXR file as a ``(3, H, W)`` float32 tensor.
 
     Needs the optional ``OpenEXR`` package (``pip install OpenEXR``); raises ImportError
-    with that hint otherwise.
+    with that hint otherwise. Non-finite and negative texels are sanitised (see
+    :func:`sanitize_radiance`); a file that cannot be read raises ``ValueError`` naming it.
     """
     try:
         import OpenEXR  # type: ignore[import-not-found]
     except ImportError:
         raise ImportError(f"read_hdr: {path}: {_EXR_HINT}") from None
     path = Path(path)
+    try:
+        return sanitize_radiance(_read_exr(OpenEXR, path), str(path))
+    except (OSError, RuntimeError, TypeError) as e:
+        raise ValueError(f"read_hdr: {path}: cannot read as OpenEXR ({e})") from None
+
+
+def sanitize_radiance(image: torch.Tensor, source: str) -> torch.Tensor:
+    """Make the texels of a loaded HDR image usable as light, with one logged warning naming
+    ``source`` and the counts: NaN -> 0, +Inf -> the largest finite value of the image (a
+    saturated sun), negative and -Inf -> 0.
+
+    Args:
+        image: ``(3, H, W)`` float radiance.
+        source: the file name, for the warning.
+
+    Returns:
+        ``(3, H, W)``, finite and non-negative.
+    """
+    finite = torch.isfinite(image)
+    n_nan, n_inf = int(torch.isnan(image).sum()), int(torch.isposinf(image).sum())
+    n_neg = int((image < 0).sum())
+    if n_nan == n_inf == n_neg == 0:
+        return image
+    top = image[finite].max() if bool(finite.any()) else image.new_zeros(())
+    out = torch.where(torch.isposinf(image), top.clamp_min(0), image)
+    out = torch.nan_to_num(out, nan=0.0, neginf=0.0).clamp_min(0)
+    log.warning("%s: %d NaN texel value(s) set to 0, %d +Inf set to %g, %d negative set to 0",
+                source, n_nan, n_inf, float(top), n_neg)
+    return out
+
+
+def _read_exr(OpenEXR, path: Path) -> torch.Tensor:  # noqa: N803 (the module)
     if hasattr(OpenEXR, "File"):  # OpenEXR >= 3.3 Python API
         with OpenEXR.File(str(path)) as f:
             chans = f.channels()
