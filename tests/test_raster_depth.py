@@ -97,3 +97,19 @@ def test_exact_duplicates_with_rotated_vertices_tie_to_the_lower_index():
         total += int(covered.sum())
         wrong += int((frags.face_id[covered] != 0).sum())
     assert total > 1000 and wrong == 0
+
+
+def test_rasterize_depth_matches_rasterize():
+    """The depth-only pass finds the same covered pixels and depths as rasterize."""
+    from torchraster.raster import rasterize_depth
+
+    g = torch.Generator().manual_seed(3)
+    clip = torch.rand(2, 60, 4, generator=g) * 2 - 1
+    clip[..., 3] = 1.0 + torch.rand(2, 60, generator=g)
+    faces = torch.randint(0, 60, (40, 3), generator=g)
+    frags = tr.rasterize(clip, faces, (48, 40))
+    depth = rasterize_depth(clip, faces, (48, 40))
+    assert depth.shape == (2, 48, 40) and depth.dtype == torch.float32
+    covered = frags.face_id >= 0
+    assert torch.equal(torch.isfinite(depth), covered)
+    assert (depth[covered] - frags.depth[covered]).abs().max() < 1e-5

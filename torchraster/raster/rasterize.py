@@ -128,6 +128,57 @@ def rasterize(
     """
     clip_pos, faces, (h, w), face_ranges = _check_inputs(clip_pos, faces, resolution,
                                                           face_ranges)
+    cull_backfaces = _check_options(clip_pos, faces, cull_backfaces, tile)
+    keys = _resolve_keys(clip_pos, faces, (h, w), cull_backfaces, face_ranges, int(tile),
+                         memory_budget, BYTES_PER_PIXEL)
+    b = clip_pos.shape[0]
+    return _fragments_from_keys(clip_pos, faces, keys, (b, h, w), derivatives)
+
+
+def rasterize_depth(
+    clip_pos: torch.Tensor,
+    faces: torch.Tensor,
+    resolution: tuple[int, int] | int,
+    cull_backfaces: bool | torch.Tensor = False,
+    face_ranges: torch.Tensor | None = None,
+    *,
+    tile: int = DEFAULT_TILE,
+    memory_budget: int = DEFAULT_MEMORY_BUDGET,
+) -> torch.Tensor:
+    """Depth-only rasterization (shadow maps, depth pre-passes): the visibility half of
+    :func:`rasterize` without the barycentric pass, so no gradients.
+
+    Args:
+        clip_pos, faces, resolution, cull_backfaces, face_ranges, tile, memory_budget: as
+            in :func:`rasterize` (same coverage rule, clipping and depth resolve).
+
+    Returns:
+        ``(B, H, W)`` float32 NDC z of the nearest surface, clamped to [-1, 1], ``+inf``
+        where nothing is covered; the same coverage and winners as :func:`rasterize`. The
+        value is the resolve's depth plane (within ~1e-6 of ``rasterize(...).depth``, which
+        is recomputed differentiably).
+
+    Example:
+        >>> depth = rasterize_depth(clip, faces, (512, 512))  # (B, 512, 512)
+    """
+    clip_pos, faces, (h, w), face_ranges = _check_inputs(clip_pos, faces, resolution,
+                                                          face_ranges)
+    cull_backfaces = _check_options(clip_pos, faces, cull_backfaces, tile)
+    keys = _resolve_keys(clip_pos, faces, (h, w), cull_backfaces, face_ranges, int(tile),
+                         memory_budget, _DEPTH_BYTES_PER_PIXEL)
+    bits = (keys >> 32).to(torch.int32)
+    bits = bits ^ ((bits >> 31) & 0x7FFFFFFF)  # inverse of _depth_key's flip
+    depth = bits.view(torch.float32)
+    depth = torch.where(keys == _EMPTY_KEY, torch.full_like(depth, float("inf")), depth)
+    return depth.view(clip_pos.shape[0], h, w)
+
+
+#: Peak bytes per pixel of rasterize_depth beyond the chunk budget: the int64 key and the
+#: float32 result.
+_DEPTH_BYTES_PER_PIXEL = 16
+
+
+def _check_options(clip_pos, faces, cull_backfaces, tile):
     if int(tile) < 1:
         raise ValueError(f"tile: expected a positive int, got {tile}")
     if isinstance(cull_backfaces, torch.Tensor):
@@ -136,8 +187,16 @@ def rasterize(
             raise TypeError(f"cull_backfaces: expected a bool or an (F,) bool tensor, got "
                             f"{cull_backfaces.dtype}")
         cull_backfaces = cull_backfaces.to(clip_pos.device)
+    return cull_backfaces
+
+
+def _resolve_keys(clip_pos, faces, resolution, cull_backfaces, face_ranges, tile,
+                  memory_budget, bytes_per_pixel) -> torch.Tensor:
+    """The no-grad visibility pass: ``(B*H*W,)`` int64 keys (depth bits << 32 | face),
+    ``_EMPTY_KEY`` where nothing is covered."""
+    h, w = resolution
     b = clip_pos.shape[0]
-    check_frame_memory(f"resolution ({h}, {w}) at batch {b}", b * h * w, BYTES_PER_PIXEL,
+    check_frame_memory(f"resolution ({h}, {w}) at batch {b}", b * h * w, bytes_per_pixel,
                        clip_pos.device)
     max_candidates = max(1024, int(memory_budget) // _BYTES_PER_CANDIDATE)
     keys = torch.full((b * h * w,), _EMPTY_KEY, dtype=torch.int64, device=clip_pos.device)
@@ -151,14 +210,14 @@ def rasterize(
                                                     max_candidates // 8):
             screen = clip_and_project(pos, screen_pos, codes, faces, face_ids, batch_ids,
                                       (h, w), cull_backfaces)
-            screen, runs, n_small = sort_by_block(screen, (h, w), int(tile))
+            screen, runs, n_small = sort_by_block(screen, (h, w), tile)
             if len(screen) == 0:
                 continue
             setup = setup_triangles(screen)
-            for records in bin_triangles(setup, runs, n_small, (h, w), int(tile),
+            for records in bin_triangles(setup, runs, n_small, (h, w), tile,
                                          max_candidates):
                 _cover_records(setup, records, (h, w), keys)
-    return _fragments_from_keys(clip_pos, faces, keys, (b, h, w), derivatives)
+    return keys
 
 
 def _check_inputs(clip_pos, faces, resolution, face_ranges):
