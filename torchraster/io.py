@@ -70,12 +70,17 @@ class Scene:
             dtype as the meshes.
         node_names: N scene-graph node names.
         name: the file name.
+        cast_shadows: N bools: the instance is drawn into shadow maps (default all True;
+            a glTF node's ``extras: {"cast_shadows": false}`` sets it).
+        receive_shadows: N bools: the instance is darkened by shadows (likewise).
     """
 
     meshes: list[Mesh]
     transforms: torch.Tensor
     node_names: list[str]
     name: str = "scene"
+    cast_shadows: list[bool] | None = None
+    receive_shadows: list[bool] | None = None
 
     def __post_init__(self) -> None:
         if not self.meshes or not all(isinstance(m, Mesh) for m in self.meshes):
@@ -88,6 +93,21 @@ class Scene:
             raise ValueError(f"transforms: expected shape ({n}, 4, 4), got {got}")
         if len(self.node_names) != n:
             raise ValueError(f"node_names: expected {n} names, got {len(self.node_names)}")
+        for flag in ("cast_shadows", "receive_shadows"):
+            value = getattr(self, flag)
+            if value is None:
+                setattr(self, flag, [True] * n)
+            elif len(value) != n or not all(isinstance(v, bool) for v in value):
+                raise ValueError(f"{flag}: expected {n} bools (one per instance), got {value!r}")
+
+    def face_shadow_flags(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per-face ``(cast_shadows, receive_shadows)``, each ``(F,)`` bool, in the face order
+        of :meth:`flatten`."""
+        counts = torch.tensor([m.num_faces for m in self.meshes])
+        cast = torch.tensor(self.cast_shadows).repeat_interleave(counts)
+        receive = torch.tensor(self.receive_shadows).repeat_interleave(counts)
+        device = self.meshes[0].faces.device
+        return cast.to(device), receive.to(device)
 
     def __len__(self) -> int:
         return len(self.meshes)
@@ -121,7 +141,7 @@ class Scene:
         """World-space axis-aligned bounds ``(2, 3)``: row 0 = min, row 1 = max."""
         lo, hi = [], []
         for mesh, m in zip(self.meshes, self.transforms, strict=True):
-            world = transform_points(mesh.positions, m)[0, :, :3]
+            world = transform_points(mesh.positions, m)[:, :3]
             lo.append(world.amin(0))
             hi.append(world.amax(0))
         return torch.stack([torch.stack(lo).amin(0), torch.stack(hi).amax(0)])
@@ -143,15 +163,15 @@ def _flatten(scene: Scene) -> tuple[Mesh, torch.Tensor, list[Material | None]]:
         f = mesh.faces
         if bool(torch.linalg.det(matrix[:3, :3].double()) < 0):
             f = f[:, [0, 2, 1]]  # glTF 2.0 spec: det < 0 means clockwise winding
-        pos.append(transform_points(mesh.positions, matrix)[0, :, :3])
+        pos.append(transform_points(mesh.positions, matrix)[:, :3])
         normals = mesh.normals if mesh.normals is not None else vertex_normals(
-            mesh.positions, mesh.faces)[0]
-        nrm.append(transform_normals(normals, matrix)[0])
+            mesh.positions, mesh.faces)
+        nrm.append(transform_normals(normals, matrix))
         if any_uv:
             uvs.append(mesh.uvs if mesh.uvs is not None else mesh.positions.new_zeros(
                 mesh.num_vertices, 2))
         if all_tan:
-            tan.append(transform_tangents(mesh.tangents, matrix)[0])
+            tan.append(transform_tangents(mesh.tangents, matrix))
         faces.append(f + offset)
         fmat.append(torch.full((mesh.num_faces,), index[key], dtype=torch.int64,
                                device=f.device))
@@ -254,12 +274,12 @@ def _convert_geometry(
         )
     positions = torch.from_numpy(vertices.astype(np.float32))
     faces_t = torch.from_numpy(faces.astype(np.int64)).reshape(-1, 3)
-    smooth = vertex_normals(positions, faces_t)[0]
+    smooth = vertex_normals(positions, faces_t)
     # Where incident face normals cancel (e.g. a triangle stored with both windings, as in
     # bunny-res2.ply), use the normal of one incident face so every used vertex has a normal.
     cancelled = smooth.norm(dim=-1) < 0.5
     if bool(cancelled.any()) and faces_t.numel():
-        fn = face_normals(positions, faces_t)[0]
+        fn = face_normals(positions, faces_t)
         fallback = torch.zeros_like(smooth)
         for k in range(3):
             fallback[faces_t[:, k]] = fn
@@ -282,7 +302,7 @@ def _convert_geometry(
         uvs = torch.from_numpy(uv.astype(np.float32))
     tangents = None
     if uvs is not None and material is not None and material.normal_texture is not None:
-        tangents = vertex_tangents(positions, uvs, normals, faces_t)[0]
+        tangents = vertex_tangents(positions, uvs, normals, faces_t)
     try:
         return Mesh(positions, faces_t, normals, uvs, tangents, material, name)
     except (ValueError, TypeError) as e:  # pragma: no cover - checks above come first
@@ -425,12 +445,32 @@ def load_scene(
         raise MeshFileError(f"{p}: contains no triangles (found: {found})")
     if not all(np.isfinite(t).all() for t in transforms):
         raise MeshFileError(f"{p}: a node transform contains NaN/Inf")
+    cast, receive = _node_shadow_flags(header, names)
     return Scene(
         meshes=meshes,
         transforms=torch.from_numpy(np.stack(transforms).astype(np.float32)),
         node_names=names,
         name=p.name,
+        cast_shadows=cast,
+        receive_shadows=receive,
     )
+
+
+def _node_shadow_flags(header: dict | None, names: list[str]
+                       ) -> tuple[list[bool], list[bool]]:
+    """Per-instance shadow flags from glTF node ``extras`` (``cast_shadows`` /
+    ``receive_shadows`` booleans); True where absent."""
+    extras: dict[str, dict] = {}
+    for node in (header or {}).get("nodes", []):
+        if isinstance(node, dict) and isinstance(node.get("extras"), dict) and "name" in node:
+            extras[str(node["name"])] = node["extras"]
+
+    def flag(name: str, key: str) -> bool:
+        value = extras.get(name, {}).get(key, True)
+        return value if isinstance(value, bool) else True
+
+    return ([flag(n, "cast_shadows") for n in names],
+            [flag(n, "receive_shadows") for n in names])
 
 
 def load_mesh(

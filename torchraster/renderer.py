@@ -21,7 +21,7 @@ from __future__ import annotations
 import logging
 import warnings
 from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 import torch.nn.functional as F
@@ -36,6 +36,14 @@ from .scene import RenderScene, as_render_scene
 from .shading.ibl import Environment, shade_ibl
 from .shading.lighting import shade
 from .shading.lights import Lights
+from .shading.shadows import (
+    ShadowMaps,
+    ShadowSettings,
+    directional_views,
+    local_views,
+    render_shadow_maps,
+    shadow_visibility,
+)
 
 log = logging.getLogger("torchraster")
 
@@ -74,6 +82,11 @@ class RenderPlan:
         cull: back faces dropped: ``"none"``, ``"all"`` (``cull_backfaces=True``) or
             ``"single-sided"`` (faces of materials with ``double_sided=False``).
         derivatives: screen-space UV derivatives are computed (trilinear texturing).
+        shadow_lights: ``(kind, light indices, settings)`` of each group of lights whose
+            shadow maps are rendered (only lights with ``cast_shadows``, and only when some
+            face casts and some face receives).
+        shadow_maps: what the shadow pass rendered (views and sizes), filled in by
+            ``forward`` (cascades that cover nothing are skipped there).
 
     Iterating a plan yields its human-readable :attr:`steps`.
     """
@@ -89,6 +102,8 @@ class RenderPlan:
     background: str
     cull: str
     derivatives: bool
+    shadow_lights: tuple[tuple[str, tuple[int, ...], ShadowSettings], ...] = ()
+    shadow_maps: tuple[str, ...] = ()
 
     @property
     def steps(self) -> list[str]:
@@ -97,6 +112,11 @@ class RenderPlan:
         steps = [f"rasterize {self.resolution[0]}x{self.resolution[1]}{cull}",
                  "gbuffer " + ",".join(sorted(self.channels))]
         if self.shading == "pbr":
+            if self.shadow_maps:
+                steps += list(self.shadow_maps)
+            else:
+                steps += [f"shadow {kind}{list(ids)} {s.map_size}x{s.map_size} {s.filter}"
+                          for kind, ids, s in self.shadow_lights]
             steps += [f"light {kind}" + (f" x{n}" if n else "") for kind, n in self.lights]
             steps += ["ssao"] * self.ssao + ["ibl"] * self.ibl
         else:
@@ -198,6 +218,10 @@ class Renderer(nn.Module):
         ssao: an enabled ``torchraster.post.SSAO`` module: its AO (from depth and view-space
             normals) multiplies the material AO before lighting (``"pbr"`` shading only).
         mip_cache_bytes: bound of the cache of constant textures' mip pyramids.
+        shadows: render shadow maps for lights with ``cast_shadows`` (False: no shadow
+            pass at all, whatever the lights say).
+        shadow_settings: the :class:`~torchraster.shading.shadows.ShadowSettings` of
+            shadow-casting lights that carry none of their own (``lights.<kind>.shadow``).
 
     Example:
         >>> renderer = Renderer(256, shading="headlight")
@@ -216,6 +240,8 @@ class Renderer(nn.Module):
         texture_filter: str = "trilinear",
         ssao: nn.Module | None = None,
         mip_cache_bytes: int = 512 * 2**20,
+        shadows: bool = True,
+        shadow_settings: ShadowSettings | None = None,
     ) -> None:
         super().__init__()
         self.resolution = check_resolution(resolution)
@@ -241,6 +267,11 @@ class Renderer(nn.Module):
         self.texture_filter = texture_filter
         self.ssao = ssao if ssao is not None and getattr(ssao, "enabled", True) else None
         self.mip_cache = MipCache(mip_cache_bytes)
+        if shadow_settings is not None and not isinstance(shadow_settings, ShadowSettings):
+            raise TypeError(f"shadow_settings: expected a ShadowSettings or None, got "
+                            f"{type(shadow_settings).__name__}")
+        self.shadows = bool(shadows)
+        self.shadow_settings = shadow_settings or ShadowSettings()
 
     def plan(self, scene: RenderScene, lights: Lights | None = None,
              environment: Environment | None = None, channels: Iterable[str] = ()
@@ -286,12 +317,35 @@ class Renderer(nn.Module):
         single_sided = [m is not None and not m.double_sided for m in scene.materials]
         cull = "all" if self.cull_backfaces else "single-sided" if any(single_sided) else "none"
         s = self.supersample
+        shadow_lights = ()
+        if shading == "pbr" and lights is not None and self.shadows:
+            shadow_lights = self._plan_shadows(scene, lights)
         return RenderPlan(
             resolution=(self.resolution[0] * s, self.resolution[1] * s), supersample=s,
             channels=frozenset(channels), requested=frozenset(requested), shading=shading,
             lights=tuple(light_kinds), ssao=ssao,
             ibl=shading == "pbr" and environment is not None, background=background, cull=cull,
-            derivatives=textured and self.texture_filter == "trilinear")
+            derivatives=textured and self.texture_filter == "trilinear",
+            shadow_lights=shadow_lights)
+
+    def _plan_shadows(self, scene: RenderScene, lights: Lights
+                      ) -> tuple[tuple[str, tuple[int, ...], ShadowSettings], ...]:
+        """Groups of shadow-casting lights with one settings object each; none when no
+        face casts or none receives."""
+        for flags in (scene.cast_shadows, scene.receive_shadows):
+            if flags is not None and not bool(flags.any()):
+                return ()
+        groups: list[tuple[str, tuple[int, ...], ShadowSettings]] = []
+        for kind in ("directional", "point", "spot"):
+            part = getattr(lights, kind)
+            if part is None or part.count == 0:
+                continue
+            casting = part.cast_shadows.any(0).nonzero().flatten().tolist()
+            by_settings: dict[ShadowSettings, list[int]] = {}
+            for i in casting:
+                by_settings.setdefault(part.settings_of(i) or self.shadow_settings, []).append(i)
+            groups += [(kind, tuple(ids), st) for st, ids in by_settings.items()]
+        return tuple(groups)
 
     def forward(
         self,
@@ -346,7 +400,12 @@ class Renderer(nn.Module):
                            face_material=scene.face_material, materials=scene.materials,
                            texture_filter=self.texture_filter, mip_cache=self.mip_cache)
         eye = camera_position(view.to(positions.dtype))
-        radiance = self._shade(plan, gb, view, proj, eye, lights, environment)
+        visibility = None
+        if plan.shadow_lights:
+            visibility, rendered = self._shadow_pass(plan, scene, frags, gb, view, proj, lights,
+                                                     b, face_ranges)
+            plan = replace(plan, shadow_maps=rendered)
+        radiance = self._shade(plan, gb, view, proj, eye, lights, environment, visibility)
         mask = gb.mask
         radiance = radiance * mask
         if plan.background == "environment":
@@ -363,9 +422,60 @@ class Renderer(nn.Module):
             outputs = outputs.downsample(s)
         return RenderOutput(image=image, alpha=alpha, gbuffer=outputs.as_dict(), plan=plan)
 
+    def _shadow_pass(self, plan: RenderPlan, scene: RenderScene, frags, gb: GBuffer,
+                     view: torch.Tensor, proj: torch.Tensor, lights: Lights, b: int,
+                     face_ranges: torch.Tensor | None):
+        """Render the planned shadow maps and return (the ``shade`` visibility hook, the
+        steps that ran)."""
+        positions = scene.positions
+        faces = scene.faces
+        cast = scene.cast_shadows
+        if cast is not None:
+            faces = faces[cast.to(faces.device)]
+            if face_ranges is not None:
+                before = torch.cat([cast.new_zeros(1, dtype=torch.int64),
+                                    torch.cumsum(cast.to(torch.int64), 0)])
+                face_ranges = before.to(face_ranges.device)[face_ranges]
+        bounds = _caster_bounds(positions, faces, face_ranges, b)
+        lights = lights.expand(b) if lights.batch_size == 1 and b > 1 else lights
+        lights = lights.to(device=positions.device, dtype=positions.dtype)
+        groups: list[ShadowMaps] = []
+        for kind, ids, settings in plan.shadow_lights:
+            part = getattr(lights, kind).select(torch.tensor(ids))
+            if kind == "directional":
+                g = directional_views(part.direction, settings, bounds, view.to(positions.dtype),
+                                      proj.to(positions.dtype))
+            else:
+                g = local_views(kind, part.position,
+                                part.direction if kind == "spot" else None,
+                                part.outer_cone_angle if kind == "spot" else None, settings,
+                                bounds)
+            g.lights = list(ids)
+            groups.append(g)
+        render_shadow_maps(groups, positions, faces, face_ranges)
+        receive = gb.mask > 0
+        if scene.receive_shadows is not None:
+            flags = scene.receive_shadows.to(frags.face_id.device)
+            fid = frags.face_id
+            receive = receive & flags[fid.clamp_min(0)].unsqueeze(1) & (fid >= 0).unsqueeze(1)
+        full: dict[str, torch.Tensor] = {}
+        for g in groups:
+            vis = shadow_visibility(g, gb.position, safe_normalize(gb.normal, dim=1), receive,
+                                    view)
+            count = getattr(lights, g.kind).count
+            if g.kind not in full:
+                full[g.kind] = vis.new_ones(b, count, 1, *vis.shape[-2:])
+            full[g.kind] = full[g.kind].index_copy(
+                1, torch.tensor(g.lights, device=vis.device), vis)
+
+        def hook(kind: str, sl: slice) -> torch.Tensor | None:
+            return full[kind][:, sl] if kind in full else None
+
+        return hook, tuple(step for g in groups for step in g.steps)
+
     def _shade(self, plan: RenderPlan, gb: GBuffer, view: torch.Tensor, proj: torch.Tensor,
                eye: torch.Tensor, lights: Lights | None,
-               environment: Environment | None) -> torch.Tensor:
+               environment: Environment | None, visibility=None) -> torch.Tensor:
         """Radiance ``(B, 3, H, W)`` of the covered pixels, by the plan's shading path."""
         if plan.shading == "headlight":
             to_eye = safe_normalize(eye[:, :, None, None] - gb.position, dim=1)
@@ -382,7 +492,26 @@ class Renderer(nn.Module):
         if plan.ibl:
             def ibl(n, v, a, m, r):
                 return shade_ibl(n, v, a, m, r, None, environment)
-        return shade(gb, camera_position=eye, lights=lights, ibl=ibl)
+        return shade(gb, camera_position=eye, lights=lights, ibl=ibl, visibility=visibility)
+
+
+def _caster_bounds(positions: torch.Tensor, faces: torch.Tensor,
+                   face_ranges: torch.Tensor | None, b: int) -> torch.Tensor:
+    """``(B, 2, 3)`` world bounds of the vertices of ``faces`` (per batch item)."""
+    with torch.no_grad():
+        pos = positions if positions.dim() == 3 else positions[None]
+        used = torch.zeros(pos.shape[1], dtype=torch.bool, device=pos.device)
+        rows = []
+        for i in range(b if face_ranges is not None or pos.shape[0] > 1 else 1):
+            f = faces if face_ranges is None else faces[int(face_ranges[i, 0]):
+                                                        int(face_ranges[i, 1])]
+            used = used.zero_().index_fill_(0, f.reshape(-1), True)
+            p = pos[min(i, pos.shape[0] - 1)][used]
+            if p.shape[0] == 0:
+                p = pos.new_zeros(1, 3)
+            rows.append(torch.stack([p.amin(0), p.amax(0)]))
+        out = torch.stack(rows)
+        return out.expand(b, 2, 3) if out.shape[0] == 1 else out
 
 
 def _cull_mask(plan: RenderPlan, scene: RenderScene) -> bool | torch.Tensor:

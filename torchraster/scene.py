@@ -32,6 +32,9 @@ class RenderScene:
         face_ranges: ``(B, 2)`` int64 ``[start, end)``: batch item b draws only
             ``faces[start:end]`` (a batch of different meshes, see :meth:`from_meshes`);
             None: every item draws every face.
+        cast_shadows: ``(F,)`` bool: faces drawn into shadow maps (None: all).
+        receive_shadows: ``(F,)`` bool: faces darkened by shadows (None: all). A ground
+            plane that receives without casting has ``cast_shadows`` False on its faces.
 
     Every field is checked on construction; an error names the field and what was expected.
     """
@@ -44,6 +47,8 @@ class RenderScene:
     face_material: torch.Tensor | None = None
     materials: list[Material | None] = field(default_factory=list)
     face_ranges: torch.Tensor | None = None
+    cast_shadows: torch.Tensor | None = None
+    receive_shadows: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         pos = self.positions
@@ -88,6 +93,13 @@ class RenderScene:
                     f"{int(self.face_material.max())}]")
         if self.face_ranges is not None:
             check_tensor("RenderScene.face_ranges", self.face_ranges, ("B", 2), integer=True)
+        for name in ("cast_shadows", "receive_shadows"):
+            flags = getattr(self, name)
+            if flags is not None:
+                check_tensor(f"RenderScene.{name}", flags, (self.faces.shape[0],))
+                if flags.dtype != torch.bool:
+                    raise TypeError(f"RenderScene.{name}: expected an (F,) bool tensor, got "
+                                    f"{flags.dtype}")
 
     @property
     def batch_size(self) -> int:
@@ -133,7 +145,11 @@ def as_render_scene(scene: object) -> RenderScene:
         return RenderScene.from_mesh(scene)
     if isinstance(scene, Scene):
         mesh, face_material, materials = scene.flatten()
-        return RenderScene.from_mesh(mesh, face_material, materials)
+        cast, receive = scene.face_shadow_flags()
+        out = RenderScene.from_mesh(mesh, face_material, materials)
+        out.cast_shadows = None if bool(cast.all()) else cast
+        out.receive_shadows = None if bool(receive.all()) else receive
+        return out
     if isinstance(scene, (list, tuple)) and scene and all(isinstance(m, Mesh) for m in scene):
         return RenderScene.from_meshes(scene)
     raise TypeError(f"scene: expected a RenderScene, Mesh, io.Scene or list of Mesh, got "

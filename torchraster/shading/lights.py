@@ -13,7 +13,10 @@ follow glTF ``KHR_lights_punctual`` (and pyrender):
   ``0 <= inner <= outer <= pi/2``.
 * ``direction``: the direction the light *travels* (a glTF light's local -Z axis),
   ``(B, L, 3)``, need not be unit length. ``position``: world space, ``(B, L, 3)``.
-* ``cast_shadows``: ``(B, L)`` bool, read by the shadow pass (not by this module).
+* ``cast_shadows``: ``(B, L)`` bool: the light casts shadows (shadow maps, see
+  :mod:`torchraster.shading.shadows`); ``shadow``: how (one
+  :class:`~torchraster.shading.shadows.ShadowSettings` for all L lights, a sequence of L
+  settings or None entries, or None: the renderer's default settings).
 
 Ambient light is a distant environment of incident *radiance* given by 9 real SH
 coefficients ``(B, 9, 3)`` (order and normalisation of Ramamoorthi & Hanrahan 2001:
@@ -36,6 +39,7 @@ import torch
 
 from torchraster._validate import check_radiance, check_tensor
 from torchraster.shading.brdf import safe_normalize
+from torchraster.shading.shadows import ShadowSettings
 
 #: Closest distance (m) a point / spot light is evaluated at: ``E = I / max(d^2, 1e-4)``
 #: (Filament ``getDistanceAttenuation``, 1 cm). Keeps E finite at the light's position.
@@ -69,7 +73,7 @@ SH_COSINE_LOBE = (math.pi, 2.0 * math.pi / 3.0, math.pi / 4.0)
 def _check_common(lights: object, batch: int | None = None) -> tuple[int, int]:
     """Validate the per-light tensors of a light container; return (B, L)."""
     first = None
-    for f in dataclasses.fields(lights):  # type: ignore[arg-type]
+    for f in _tensor_fields(lights):
         value = getattr(lights, f.name)
         name = f"{type(lights).__name__}.{f.name}"
         if f.name == "cast_shadows":
@@ -89,12 +93,29 @@ def _check_common(lights: object, batch: int | None = None) -> tuple[int, int]:
             raise TypeError(f"{type(lights).__name__}.cast_shadows: expected a bool tensor")
     for name in ("color", "intensity"):
         check_radiance(f"{type(lights).__name__}.{name}", getattr(lights, name))
+    _check_shadow_settings(lights, first[1])
     if hasattr(lights, "direction"):
         norm2 = (lights.direction.detach() ** 2).sum(-1)  # type: ignore[attr-defined]
         if bool((norm2 <= 0).any()):
             raise ValueError(f"{type(lights).__name__}.direction: zero vector for light(s) "
                              f"{(norm2 <= 0).nonzero()[:, 1].tolist()}; expected a direction")
     return first
+
+
+def _tensor_fields(lights: object) -> list[dataclasses.Field]:
+    return [f for f in dataclasses.fields(lights) if f.name != "shadow"]  # type: ignore[arg-type]
+
+
+def _check_shadow_settings(lights: object, count: int) -> None:
+    shadow = lights.shadow  # type: ignore[attr-defined]
+    name = f"{type(lights).__name__}.shadow"
+    if shadow is None or isinstance(shadow, ShadowSettings):
+        return
+    if not isinstance(shadow, (list, tuple)) or len(shadow) != count or not all(
+            s is None or isinstance(s, ShadowSettings) for s in shadow):
+        raise TypeError(f"{name}: expected a ShadowSettings, None, or a sequence of {count} "
+                        f"ShadowSettings / None (one per light), got {shadow!r}")
+    lights.shadow = tuple(shadow)  # type: ignore[attr-defined]
 
 
 class _LightSet:
@@ -109,12 +130,25 @@ class _LightSet:
     def batch_size(self) -> int:
         return self.color.shape[0]  # type: ignore[attr-defined]
 
-    def select(self, index: slice):
-        """The lights ``[:, index]`` as a container of the same type."""
-        return dataclasses.replace(
-            self,  # type: ignore[arg-type]
-            **{f.name: getattr(self, f.name)[:, index] for f in dataclasses.fields(self)},  # type: ignore[arg-type]
-        )
+    def settings_of(self, i: int) -> ShadowSettings | None:
+        """The shadow settings of light ``i`` (None: the renderer's default)."""
+        shadow = self.shadow  # type: ignore[attr-defined]
+        return shadow if shadow is None or isinstance(shadow, ShadowSettings) else shadow[i]
+
+    def select(self, index: slice | torch.Tensor):
+        """The lights ``[:, index]`` (a slice or an int64 index tensor) as a container of
+        the same type."""
+        if isinstance(index, torch.Tensor):
+            ids = index.tolist()
+            pick = {f.name: getattr(self, f.name).index_select(1, index.to(self.color.device))
+                    for f in _tensor_fields(self)}
+        else:
+            ids = list(range(self.count))[index]
+            pick = {f.name: getattr(self, f.name)[:, index] for f in _tensor_fields(self)}
+        shadow = self.shadow  # type: ignore[attr-defined]
+        if isinstance(shadow, tuple):
+            shadow = tuple(shadow[i] for i in ids)
+        return dataclasses.replace(self, shadow=shadow, **pick)  # type: ignore[arg-type]
 
     def expand(self, batch: int):
         """The same lights for ``batch`` scenes: ``(1, L, ...)`` -> ``(batch, L, ...)``."""
@@ -126,12 +160,12 @@ class _LightSet:
         return dataclasses.replace(
             self,  # type: ignore[arg-type]
             **{f.name: getattr(self, f.name).expand(batch, *getattr(self, f.name).shape[1:])
-               for f in dataclasses.fields(self)})  # type: ignore[arg-type]
+               for f in _tensor_fields(self)})
 
     def to(self, device=None, dtype: torch.dtype | None = None):
         """Move to ``device`` and cast floating tensors to ``dtype``."""
         out = {}
-        for f in dataclasses.fields(self):  # type: ignore[arg-type]
+        for f in _tensor_fields(self):
             t = getattr(self, f.name)
             out[f.name] = t.to(device=device, dtype=dtype if t.is_floating_point() else None)
         return dataclasses.replace(self, **out)  # type: ignore[arg-type]
@@ -146,6 +180,7 @@ class DirectionalLights(_LightSet):
     color: torch.Tensor
     intensity: torch.Tensor
     cast_shadows: torch.Tensor | None = None
+    shadow: ShadowSettings | tuple[ShadowSettings | None, ...] | None = None
 
     def __post_init__(self) -> None:
         b, n = _check_common(self)
@@ -163,6 +198,7 @@ class PointLights(_LightSet):
     intensity: torch.Tensor
     range: torch.Tensor | None = None
     cast_shadows: torch.Tensor | None = None
+    shadow: ShadowSettings | tuple[ShadowSettings | None, ...] | None = None
 
     def __post_init__(self) -> None:
         if self.range is None:
@@ -188,6 +224,7 @@ class SpotLights(_LightSet):
     inner_cone_angle: torch.Tensor | None = None
     outer_cone_angle: torch.Tensor | None = None
     cast_shadows: torch.Tensor | None = None
+    shadow: ShadowSettings | tuple[ShadowSettings | None, ...] | None = None
 
     def __post_init__(self) -> None:
         if self.range is None:

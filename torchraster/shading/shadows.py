@@ -1,0 +1,844 @@
+"""Shadow maps: light visibility for directional, spot and point lights.
+
+One shadow pass renders, with our own depth-only :func:`~torchraster.raster.rasterize_depth`,
+every view of every shadow-casting light of a batch in as few calls as the memory budget
+allows (all views of one map size are one batch). The lighting pass then asks
+:func:`shadow_visibility` for the fraction of each light that reaches each pixel.
+
+Views per light:
+
+* **directional**: orthographic maps; ``cascades`` (1-4) split the camera's depth range
+  (practical split scheme, Zhang et al. 2006: ``lambda`` blends logarithmic and uniform
+  splits). Each cascade is fitted to the bounding sphere of its frustum slice (its size does
+  not change as the camera turns) and its origin is snapped to the texel grid, so shadows do
+  not shimmer when the camera moves; when the casters' bounds are smaller than that sphere
+  the map is fitted to them instead. A cascade whose slice misses the scene is not
+  rendered. Depth spans every caster (also those outside the camera's frustum).
+* **spot**: a perspective map around the spot axis covering the outer cone (cones wider
+  than :data:`MAX_SPOT_FOV_DEG` use a cube map like point lights).
+* **point**: a cube map (6 perspective faces, each widened by a few texels so filter taps
+  near a face edge stay inside the face).
+
+Maps hold *linear* depth (distance along the light's view axis, metres), so biases are in
+world units: ``bias`` and ``slope_bias`` are multiples of the world size of one shadow-map
+texel at the receiver (constant + slope-scaled, Lengyel / "Common techniques to improve
+shadow depth maps", Microsoft 2011), and ``normal_bias`` moves the receiver along its normal
+by that many texels (normal-offset shadows, Holbert 2011). Defaults are measured in
+docs/benchmarks.md ("Shadows").
+
+Filters (``ShadowSettings.filter``):
+
+* ``"hard"``: one nearest-texel comparison.
+* ``"pcf"``: percentage-closer filtering: ``pcf_taps`` taps on a Poisson disc (or a grid)
+  of radius ``pcf_radius`` texels, each a bilinearly weighted comparison of 4 texels (like
+  hardware PCF), so the result is continuous and differentiable in the receiver's map
+  position (light position and direction, receiver geometry).
+* ``"pcss"``: percentage-closer soft shadows (Fernando 2005): a blocker search over the
+  light's footprint, penumbra width from the light size (``light_size``: radius in metres for
+  point / spot lights, angular diameter in degrees for directional lights) and the
+  blocker/receiver distances, then PCF with that radius.
+* ``"vsm"``: variance shadow maps (Donnelly & Lauritzen 2006): depth moments blurred with a
+  Gaussian (kornia), Chebyshev's upper bound with a minimum variance and light-bleeding
+  reduction. Smooth in the receiver depth *and* in the occluders' depth: with autograd on
+  the maps are rendered by the differentiable :func:`~torchraster.raster.rasterize`, so
+  gradients reach occluder geometry too.
+
+Gradients: the visibility factor multiplies the illuminance, so receivers' shading,
+materials and light intensity get gradients through it always. Through the visibility
+itself: PCF / PCSS are differentiable with respect to everything that moves the receiver's
+position in the map (light position and direction, receiver positions; not occluder depth:
+a depth comparison is a step); VSM also with respect to occluder depth; ``"hard"`` has zero
+gradient.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import torch
+
+from torchraster._validate import check_tensor
+from torchraster.numerics import safe_normalize
+from torchraster.raster import rasterize, rasterize_depth
+
+FILTERS = ("hard", "pcf", "pcss", "vsm")
+PATTERNS = ("poisson", "grid")
+#: Spot lights with a wider outer cone (full angle, degrees) are rendered as cube maps.
+MAX_SPOT_FOV_DEG: float = 120.0
+#: Bytes of shadow-map memory rendered per rasterize call (views are chunked to fit).
+SHADOW_MEMORY_BUDGET: int = 256 * 2**20
+#: Pixel-taps evaluated at once by the filters (bounds the temporaries of one chunk).
+TAP_CHUNK_ELEMENTS: int = 2**22
+#: Largest tan(angle) between normal and light used by the slope-scaled bias (~84 deg).
+MAX_SLOPE: float = 10.0
+
+
+@dataclass(frozen=True)
+class ShadowSettings:
+    """How one light's shadows are rendered and filtered (defaults: docs/benchmarks.md).
+
+    Args:
+        map_size: side of each shadow map (and cube face / cascade) in texels.
+        filter: ``"hard"``, ``"pcf"``, ``"pcss"`` or ``"vsm"`` (see the module docstring).
+        pcf_radius: PCF filter radius in texels.
+        pcf_taps: PCF (and PCSS) taps.
+        pcf_pattern: ``"poisson"`` (a fixed, well-spread disc) or ``"grid"``.
+        bias: constant depth bias, in texels (world size of one texel at the receiver).
+        slope_bias: slope-scaled depth bias, in texels per unit tan(angle to the light).
+        normal_bias: normal offset of the receiver, in texels.
+        intensity: shadow strength: 0 = no darkening, 1 = fully occluded light is black.
+        cascades: cascaded maps of a directional light (1-4; other lights ignore it).
+        split_lambda: cascade split blend: 0 uniform, 1 logarithmic.
+        cascade_blend: fraction of a cascade's depth range blended into the next one.
+        max_distance: directional cascades cover camera depths up to this (m); None = the
+            farthest scene point.
+        light_size: PCSS light size: radius (m) of point / spot lights, angular diameter
+            (degrees) of directional lights (the sun: 0.53).
+        max_penumbra: largest PCSS filter radius and blocker-search radius, in texels.
+        vsm_blur: standard deviation (texels) of the Gaussian blur of VSM moments.
+        vsm_bleed: VSM light-bleeding reduction (0 = none; cut Chebyshev's bound below it).
+        vsm_min_variance: VSM variance floor, relative to the squared depth range.
+    """
+
+    map_size: int = 1024
+    filter: str = "pcf"
+    pcf_radius: float = 1.5
+    pcf_taps: int = 16
+    pcf_pattern: str = "poisson"
+    bias: float = 1.0
+    slope_bias: float = 1.0
+    normal_bias: float = 1.0
+    intensity: float = 1.0
+    cascades: int = 1
+    split_lambda: float = 0.75
+    cascade_blend: float = 0.1
+    max_distance: float | None = None
+    light_size: float = 0.5
+    max_penumbra: float = 24.0
+    vsm_blur: float = 1.5
+    vsm_bleed: float = 0.2
+    vsm_min_variance: float = 1e-7
+
+    def __post_init__(self) -> None:
+        def bad(name: str, expected: str) -> None:
+            raise ValueError(f"ShadowSettings.{name}: expected {expected}, got "
+                             f"{getattr(self, name)!r}")
+
+        if not isinstance(self.map_size, int) or not 8 <= self.map_size <= 16384:
+            bad("map_size", "an int in [8, 16384]")
+        if self.filter not in FILTERS:
+            bad("filter", f"one of {FILTERS}")
+        if self.pcf_pattern not in PATTERNS:
+            bad("pcf_pattern", f"one of {PATTERNS}")
+        if not isinstance(self.pcf_taps, int) or not 1 <= self.pcf_taps <= 256:
+            bad("pcf_taps", "an int in [1, 256]")
+        if not isinstance(self.cascades, int) or not 1 <= self.cascades <= 4:
+            bad("cascades", "an int in [1, 4]")
+        for name, lo, hi in (("pcf_radius", 0, 64), ("bias", 0, 1e3), ("slope_bias", 0, 1e3),
+                             ("normal_bias", 0, 1e3), ("intensity", 0, 1),
+                             ("split_lambda", 0, 1), ("cascade_blend", 0, 0.5),
+                             ("light_size", 0, 1e6), ("max_penumbra", 0.5, 64),
+                             ("vsm_blur", 0, 64), ("vsm_bleed", 0, 0.99),
+                             ("vsm_min_variance", 0, 1)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (
+                    lo <= v <= hi and math.isfinite(v)):
+                bad(name, f"a number in [{lo}, {hi}]")
+        if self.max_distance is not None and not (
+                isinstance(self.max_distance, (int, float)) and self.max_distance > 0
+                and math.isfinite(self.max_distance)):
+            bad("max_distance", "a positive finite number or None")
+
+
+@dataclass
+class ShadowMaps:
+    """The rendered maps of one group of shadow-casting lights of one kind.
+
+    Attributes:
+        kind: ``"directional"``, ``"point"`` or ``"spot"``.
+        lights: indices (into the kind's lights) of the Ls lights of the group.
+        settings: their :class:`ShadowSettings`.
+        layout: ``"single"`` (one map), ``"cascades"`` or ``"cube"`` (6 faces +X -X +Y -Y
+            +Z -Z).
+        view: ``(B, Ls, NV, 4, 4)`` world -> light view matrices (light looks along -z).
+        proj: ``(B, Ls, NV, 4, 4)`` OpenGL projections (orthographic or perspective).
+        near, far: ``(B, Ls, NV)`` linear depth range of each view (m).
+        texel: ``(B, Ls, NV)`` world size of one texel: metres (orthographic) or metres
+            per metre of depth (perspective).
+        depth: ``(B, Ls, NV, S, S)`` linear depth of the nearest caster (``+inf`` where
+            none), or for VSM the blurred moments ``(B, Ls, NV, 2, S, S)`` of the depth
+            normalised to [0, 1] over ``[near, far]``.
+        splits: ``(B, Ls, C + 1)`` camera view depths bounding the cascades, or None.
+        rendered: ``(NV,)`` bool: views that were rendered (a cascade that covers nothing
+            is skipped; its pixels fall to the next cascade or are unshadowed).
+    """
+
+    kind: str
+    lights: list[int]
+    settings: ShadowSettings
+    layout: str
+    view: torch.Tensor
+    proj: torch.Tensor
+    near: torch.Tensor
+    far: torch.Tensor
+    texel: torch.Tensor
+    depth: torch.Tensor | None = None
+    splits: torch.Tensor | None = None
+    rendered: torch.Tensor | None = None
+    light_position: torch.Tensor | None = None  # (B, Ls, 3) point / spot
+    light_direction: torch.Tensor | None = None  # (B, Ls, 3) unit, travel direction
+    steps: list[str] = field(default_factory=list)
+
+    @property
+    def perspective(self) -> bool:
+        return self.kind != "directional"
+
+
+# ----------------------------------------------------------------------------- matrices
+
+
+def _basis_from_forward(forward: torch.Tensor) -> torch.Tensor:
+    """``(..., 3, 3)`` rotation rows (right, up, back) of a view looking along ``forward``
+    (unit, ``(..., 3)``); the up hint is world +y unless forward is nearly vertical."""
+    up_hint = torch.zeros_like(forward)
+    vertical = forward.detach()[..., 1].abs() > 0.99
+    up_hint[..., 1] = torch.where(vertical, 0.0, 1.0)
+    up_hint[..., 2] = torch.where(vertical, 1.0, 0.0)
+    back = -forward
+    right = safe_normalize(torch.linalg.cross(up_hint, back), dim=-1)
+    up = torch.linalg.cross(back, right)
+    return torch.stack([right, up, back], dim=-2)
+
+
+def _view_matrix(rot: torch.Tensor, eye: torch.Tensor) -> torch.Tensor:
+    """World -> view ``(..., 4, 4)`` from rotation rows ``(..., 3, 3)`` and eye ``(..., 3)``."""
+    top = torch.cat([rot, -(rot @ eye[..., None])], dim=-1)
+    bottom = torch.zeros_like(top[..., :1, :])
+    bottom = bottom + torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=top.dtype, device=top.device)
+    return torch.cat([top, bottom], dim=-2)
+
+
+def _ortho(lo: torch.Tensor, hi: torch.Tensor, near: torch.Tensor, far: torch.Tensor
+           ) -> torch.Tensor:
+    """OpenGL orthographic ``(..., 4, 4)`` of the box ``lo``/``hi`` ``(..., 2)`` (view x, y)
+    and linear depths ``near``..``far``."""
+    m = torch.zeros(*near.shape, 4, 4, dtype=near.dtype, device=near.device)
+    m[..., 0, 0] = 2 / (hi[..., 0] - lo[..., 0])
+    m[..., 1, 1] = 2 / (hi[..., 1] - lo[..., 1])
+    m[..., 2, 2] = -2 / (far - near)
+    m[..., 0, 3] = -(hi[..., 0] + lo[..., 0]) / (hi[..., 0] - lo[..., 0])
+    m[..., 1, 3] = -(hi[..., 1] + lo[..., 1]) / (hi[..., 1] - lo[..., 1])
+    m[..., 2, 3] = -(far + near) / (far - near)
+    m[..., 3, 3] = 1
+    return m
+
+
+def _perspective(tan_half: float, near: torch.Tensor, far: torch.Tensor) -> torch.Tensor:
+    """OpenGL perspective ``(..., 4, 4)``, square, ``tan(fov / 2) = tan_half``."""
+    m = torch.zeros(*near.shape, 4, 4, dtype=near.dtype, device=near.device)
+    m[..., 0, 0] = 1 / tan_half
+    m[..., 1, 1] = 1 / tan_half
+    m[..., 2, 2] = -(far + near) / (far - near)
+    m[..., 2, 3] = -2 * far * near / (far - near)
+    m[..., 3, 2] = -1
+    return m
+
+
+def _linear_depth(ndc: torch.Tensor, near: torch.Tensor, far: torch.Tensor,
+                  perspective: bool) -> torch.Tensor:
+    """Linear depth (m) from NDC z of :func:`_ortho` / :func:`_perspective`; ``far`` where
+    ``ndc`` is not finite (nothing rendered)."""
+    empty = ~torch.isfinite(ndc)
+    z = torch.where(empty, 1.0, ndc)
+    if perspective:
+        d = 2 * far * near / ((far + near) - z * (far - near))
+    else:
+        d = (z * (far - near) + far + near) / 2
+    return torch.where(empty, far, d)
+
+
+_CUBE_FORWARD = ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1))
+
+
+def _cube_rotations(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """``(6, 3, 3)`` view rotations of the cube faces +X -X +Y -Y +Z -Z."""
+    fwd = torch.tensor(_CUBE_FORWARD, dtype=dtype, device=device)
+    return _basis_from_forward(fwd)
+
+
+def _depth_range(bounds: torch.Tensor, eye: torch.Tensor, axis: torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Near / far (m) along unit ``axis`` ``(B, L, 3)`` from ``eye`` ``(B, L, 3)`` enclosing
+    the box ``bounds`` ``(B, 2, 3)``; near > 0 is kept >= far * 1e-4."""
+    corners = _box_corners(bounds)  # (B, 8, 3)
+    rel = corners[:, None] - eye[:, :, None]  # (B, L, 8, 3)
+    along = (rel * axis[:, :, None]).sum(-1)
+    far = along.amax(-1).clamp_min(1e-3) * 1.01
+    # nearest distance from the eye to the box (0 inside): the near plane cannot be beyond it
+    gap = (bounds[:, None, 0] - eye).clamp_min(0) + (eye - bounds[:, None, 1]).clamp_min(0)
+    dist = gap.norm(dim=-1)
+    near = torch.maximum(0.9 * dist, far * 1e-4)
+    return near, torch.maximum(far, near * 1.01)
+
+
+def _box_corners(bounds: torch.Tensor) -> torch.Tensor:
+    """``(B, 8, 3)`` corners of boxes ``(B, 2, 3)`` (row 0 min, row 1 max)."""
+    idx = torch.tensor([[(k >> a) & 1 for a in range(3)] for k in range(8)],
+                       device=bounds.device)
+    return torch.gather(bounds, 1, idx[None].expand(bounds.shape[0], 8, 3))
+
+
+def _poisson_disc(n: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """``(n, 2)`` points in the unit disc: a Vogel (golden-angle) spiral, which is evenly
+    spread like a Poisson disc and deterministic."""
+    k = torch.arange(n, dtype=torch.float64)
+    r = torch.sqrt((k + 0.5) / n)
+    theta = k * math.pi * (3 - math.sqrt(5))
+    return torch.stack([r * torch.cos(theta), r * torch.sin(theta)], -1).to(dtype=dtype,
+                                                                           device=device)
+
+
+def _grid(n: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """``(m*m, 2)`` points of an m x m grid in [-1, 1]^2 with m*m >= n... m = round(sqrt(n))."""
+    m = max(1, round(math.sqrt(n)))
+    t = torch.linspace(-1, 1, m, dtype=torch.float64) if m > 1 else torch.zeros(1,
+                                                                               dtype=torch.float64)
+    gy, gx = torch.meshgrid(t, t, indexing="ij")
+    return torch.stack([gx.flatten(), gy.flatten()], -1).to(dtype=dtype, device=device)
+
+
+def tap_pattern(settings: ShadowSettings, dtype: torch.dtype = torch.float32,
+                device: torch.device | str | None = None) -> torch.Tensor:
+    """The PCF tap offsets ``(T, 2)`` in units of the filter radius."""
+    if settings.pcf_taps == 1:
+        return torch.zeros(1, 2, dtype=dtype, device=device)
+    if settings.pcf_pattern == "grid":
+        return _grid(settings.pcf_taps, dtype, device)
+    return _poisson_disc(settings.pcf_taps, dtype, device)
+
+
+# ------------------------------------------------------------------------------- views
+
+
+def cascade_splits(near: torch.Tensor, far: torch.Tensor, count: int, lam: float
+                   ) -> torch.Tensor:
+    """Practical split scheme (Zhang et al. 2006): ``(..., count + 1)`` view depths from
+    ``near`` to ``far`` (``(...,)``), ``lam * log + (1 - lam) * uniform``."""
+    i = torch.arange(count + 1, dtype=near.dtype, device=near.device) / count
+    n, f = near[..., None], far[..., None]
+    log = n * (f / n) ** i
+    uni = n + (f - n) * i
+    return lam * log + (1 - lam) * uni
+
+
+def _frustum_points(view: torch.Tensor, proj: torch.Tensor, depths: torch.Tensor
+                    ) -> torch.Tensor:
+    """World positions ``(B, K, 4, 3)`` of the camera frustum's 4 corner rays at view depths
+    ``depths`` ``(B, K)`` (works for perspective and orthographic cameras)."""
+    dtype = torch.float64
+    inv_proj = torch.linalg.inv(proj.to(dtype))
+    inv_view = torch.linalg.inv(view.to(dtype))
+    xy = torch.tensor([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=dtype, device=view.device)
+
+    def unproject(z: float) -> torch.Tensor:
+        p = torch.cat([xy, torch.full((4, 1), z, dtype=dtype, device=view.device),
+                       torch.ones(4, 1, dtype=dtype, device=view.device)], 1)  # (4, 4)
+        q = torch.einsum("bij,kj->bki", inv_proj, p)
+        return q[..., :3] / q[..., 3:]  # (B, 4, 3) view space
+
+    a, b = unproject(-0.5), unproject(0.0)  # two points on each corner ray
+    t = (-depths[..., None].to(dtype) - a[:, None, :, 2]) / (b[:, None, :, 2] - a[:, None, :, 2])
+    pts = a[:, None] + t[..., None] * (b - a)[:, None]  # (B, K, 4, 3) view space
+    world = torch.einsum("bij,bkcj->bkci", inv_view[:, :3, :3], pts) + inv_view[:, None, None,
+                                                                                :3, 3]
+    return world
+
+
+def _camera_depth_range(view: torch.Tensor, bounds: torch.Tensor
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
+    """View depth range ``(B,)`` of the scene box in front of the camera."""
+    corners = _box_corners(bounds.to(torch.float64))
+    z = -(torch.einsum("bij,bkj->bki", view[:, :3, :3].to(torch.float64), corners)
+          + view[:, None, :3, 3].to(torch.float64))[..., 2]
+    far = z.amax(-1).clamp_min(1e-3)
+    near = z.amin(-1).clamp_min(far * 1e-4)
+    return near, far
+
+
+def directional_views(direction: torch.Tensor, settings: ShadowSettings, bounds: torch.Tensor,
+                      view: torch.Tensor, proj: torch.Tensor) -> ShadowMaps:
+    """Cascaded orthographic views of directional lights.
+
+    Args:
+        direction: ``(B, Ls, 3)`` travel directions (need not be unit).
+        settings: shared by the Ls lights.
+        bounds: ``(B, 2, 3)`` world bounds of the casters (row 0 min, row 1 max).
+        view, proj: ``(B, 4, 4)`` the camera (the cascades split its depth range).
+
+    Returns:
+        :class:`ShadowMaps` without depth (see :func:`render_shadow_maps`).
+    """
+    b, n_lights, _ = direction.shape
+    c = settings.cascades
+    dtype = direction.dtype
+    fwd = safe_normalize(direction, dim=-1)
+    rot = _basis_from_forward(fwd)  # (B, Ls, 3, 3), differentiable in direction
+    with torch.no_grad():
+        near_c, far_c = _camera_depth_range(view, bounds)
+        if settings.max_distance is not None:
+            far_c = far_c.clamp_max(settings.max_distance)
+            near_c = torch.minimum(near_c, far_c * 0.5)
+        splits = cascade_splits(near_c, far_c, c, settings.split_lambda)  # (B, C+1)
+        # each cascade covers its slice extended by the blend band into the previous one
+        lo_d = splits[:, :-1] - settings.cascade_blend * (splits[:, 1:] - splits[:, :-1])
+        lo_d = torch.maximum(lo_d, splits[:, :1])
+        slice_lo = _frustum_points(view, proj, lo_d)  # (B, C, 4, 3)
+        slice_hi = _frustum_points(view, proj, splits[:, 1:])
+        pts = torch.cat([slice_lo, slice_hi], 2)  # (B, C, 8, 3) float64
+        centre = pts.mean(2)  # (B, C, 3)
+        radius = (pts - centre[:, :, None]).norm(dim=-1).amax(-1)  # (B, C)
+        r64 = rot.detach().to(torch.float64)  # (B, Ls, 3, 3)
+        centre_l = torch.einsum("blij,bcj->blci", r64, centre)  # light-space centres
+        texel = 2 * radius[:, None].expand(b, n_lights, c) / settings.map_size
+        snapped = torch.floor(centre_l[..., :2] / texel[..., None]) * texel[..., None]
+        lo = snapped - radius[:, None, :, None]
+        hi = snapped + radius[:, None, :, None]
+        # casters' box in light space
+        corners = _box_corners(bounds.to(torch.float64))  # (B, 8, 3)
+        corners_l = torch.einsum("blij,bkj->blki", r64, corners)  # (B, Ls, 8, 3)
+        box_lo, box_hi = corners_l.amin(2), corners_l.amax(2)  # (B, Ls, 3)
+        box_size = (box_hi[..., :2] - box_lo[..., :2]).amax(-1)  # (B, Ls)
+        use_box = (box_size[..., None] <= 2 * radius[:, None]).expand(b, n_lights, c)
+        pad = box_size[..., None].expand(b, n_lights, c)[..., None] * 1e-3 + 1e-6
+        blo = (box_lo[..., None, :2] - pad).expand(b, n_lights, c, 2)
+        bhi = (box_hi[..., None, :2] + pad).expand(b, n_lights, c, 2)
+        lo = torch.where(use_box[..., None], blo, lo)
+        hi = torch.where(use_box[..., None], bhi, hi)
+        texel = torch.where(use_box, (bhi - blo).amax(-1) / settings.map_size, texel)
+        # a cascade that does not overlap the casters' box covers nothing
+        covers = ((lo < box_hi[..., None, :2]) & (hi > box_lo[..., None, :2])).all(-1)
+        # light-space depth: the light looks along -z (back = -fwd), depth = -z_light
+        depth_lo = -box_hi[..., 2]  # (B, Ls)
+        depth_hi = -box_lo[..., 2]
+        span = (depth_hi - depth_lo).clamp_min(1e-6)
+        # the view's eye sits a margin in front of the nearest caster
+        eye_depth = depth_lo - 0.01 * span - 1e-4
+        near = torch.full_like(texel, 0.0) + (depth_lo - eye_depth)[..., None] * 0.5
+        far = (depth_hi - eye_depth)[..., None].expand_as(texel) * 1.01 + 1e-6
+        far = torch.maximum(far, near * 2)
+        # eye in light space: x = y = 0, z = -eye_depth (depth = -z)
+    eye_l = torch.zeros(b, n_lights, 3, dtype=torch.float64, device=direction.device)
+    eye_l[..., 2] = -eye_depth
+    # world eye = rot^T eye_l (rot is orthonormal), differentiable through rot
+    eye = (rot.transpose(-1, -2) @ eye_l.to(dtype)[..., None])[..., 0]  # (B, Ls, 3)
+    v = _view_matrix(rot, eye)[:, :, None].expand(b, n_lights, c, 4, 4)
+    p = _ortho(lo.to(dtype), hi.to(dtype), near.to(dtype), far.to(dtype))
+    rendered = covers.any(0).any(0)  # (C,)
+    return ShadowMaps("directional", [], settings, "cascades" if c > 1 else "single", v, p,
+                      near.to(dtype), far.to(dtype), texel.to(dtype),
+                      splits=splits.to(dtype)[:, None].expand(b, n_lights, c + 1),
+                      rendered=rendered, light_direction=fwd)
+
+
+def local_views(kind: str, position: torch.Tensor, direction: torch.Tensor | None,
+                outer_cone: torch.Tensor | None, settings: ShadowSettings,
+                bounds: torch.Tensor) -> ShadowMaps:
+    """Perspective views of point lights (cube maps) or spot lights (one map, or a cube map
+    for cones wider than :data:`MAX_SPOT_FOV_DEG`).
+
+    Args:
+        kind: ``"point"`` or ``"spot"``.
+        position: ``(B, Ls, 3)``; direction: ``(B, Ls, 3)`` spot axes (spot only).
+        outer_cone: ``(B, Ls)`` outer cone angles in radians (spot only).
+        settings: shared by the Ls lights; bounds: ``(B, 2, 3)`` casters' world bounds.
+
+    Returns:
+        :class:`ShadowMaps` without depth.
+    """
+    b, n_lights, _ = position.shape
+    dtype, device = position.dtype, position.device
+    size = settings.map_size
+    # widen each view by a margin of texels so that filter taps stay inside it
+    margin = (settings.max_penumbra if settings.filter == "pcss" else settings.pcf_radius) + 2
+    margin = min(margin, size / 4)
+    cube = kind == "point"
+    fov_half = None
+    if kind == "spot":
+        widest = float(outer_cone.detach().amax()) if outer_cone.numel() else 0.0
+        cube = 2 * math.degrees(widest) > MAX_SPOT_FOV_DEG
+        fov_half = max(widest, math.radians(1.0))
+    if cube:
+        tan_half = size / (size - 2 * margin)  # 90 degrees plus the margin
+        rot = _cube_rotations(dtype, device)[None, None].expand(b, n_lights, 6, 3, 3)
+        axes = torch.tensor(_CUBE_FORWARD, dtype=dtype, device=device)[None, None]
+        axes = axes.expand(b, n_lights, 6, 3)
+        layout = "cube"
+    else:
+        tan_half = math.tan(fov_half) * size / (size - 2 * margin)
+        fwd = safe_normalize(direction, dim=-1)
+        rot = _basis_from_forward(fwd)[:, :, None]
+        axes = fwd[:, :, None]
+        layout = "single"
+    nv = rot.shape[2]
+    with torch.no_grad():
+        near, far = _depth_range(bounds, position.detach().repeat_interleave(nv, 1),
+                                 axes.detach().reshape(b, n_lights * nv, 3))
+        near, far = near.view(b, n_lights, nv), far.view(b, n_lights, nv)
+    view = _view_matrix(rot, position[:, :, None].expand(b, n_lights, nv, 3))
+    proj = _perspective(tan_half, near, far)
+    texel = torch.full_like(near, 2 * tan_half / size)
+    maps = ShadowMaps(kind, [], settings, layout, view, proj, near, far, texel,
+                      rendered=torch.ones(nv, dtype=torch.bool, device=device),
+                      light_position=position)
+    if kind == "spot":
+        maps.light_direction = safe_normalize(direction, dim=-1)
+    return maps
+
+
+# ------------------------------------------------------------------------------- render
+
+
+def render_shadow_maps(groups: Sequence[ShadowMaps], positions: torch.Tensor,
+                       faces: torch.Tensor, face_ranges: torch.Tensor | None = None,
+                       memory_budget: int = SHADOW_MEMORY_BUDGET) -> None:
+    """Render the depth of every view of ``groups`` (in place: sets ``group.depth``).
+
+    All views of one map size go through one :func:`rasterize_depth` call (chunked to
+    ``memory_budget`` bytes of maps); VSM groups with autograd on use the differentiable
+    :func:`rasterize`.
+
+    Args:
+        groups: from :func:`directional_views` / :func:`local_views`.
+        positions: ``(B, V, 3)`` or ``(V, 3)`` world positions; faces: ``(F, 3)`` the
+            shadow casters; face_ranges: ``(B, 2)`` as in ``rasterize`` or None.
+        memory_budget: bytes of shadow maps (and per-pixel buffers) rendered per call.
+    """
+    by_size: dict[tuple[int, bool], list[ShadowMaps]] = {}
+    for g in groups:
+        grad = g.settings.filter == "vsm" and torch.is_grad_enabled() and (
+            positions.requires_grad or g.view.requires_grad)
+        by_size.setdefault((g.settings.map_size, grad), []).append(g)
+    pos = positions if positions.dim() == 3 else positions[None]
+    for (size, grad), members in by_size.items():
+        mats, owners = [], []
+        for g in members:
+            b, n_lights, nv = g.view.shape[:3]
+            keep = g.rendered.nonzero().flatten()
+            m = (g.proj @ g.view).index_select(2, keep)  # (B, Ls, NV', 4, 4)
+            mats.append(m.reshape(-1, 4, 4))
+            items = torch.arange(b, device=pos.device)[:, None, None].expand(
+                b, n_lights, keep.numel()).reshape(-1)
+            owners.append(items)
+        all_m = torch.cat(mats) if grad else torch.cat(mats).detach()
+        items = torch.cat(owners)
+        per_view = size * size * (16 if not grad else 400)
+        per_call = max(1, memory_budget // per_view)
+        ndc = []
+        for k in range(0, all_m.shape[0], per_call):
+            sl = slice(k, k + per_call)
+            src = pos.index_select(0, items[sl]) if pos.shape[0] > 1 else pos.expand(
+                all_m[sl].shape[0], -1, -1)
+            homo = torch.cat([src, torch.ones_like(src[..., :1])], -1)
+            clip = homo @ all_m[sl].to(homo.dtype).transpose(1, 2)
+            ranges = None if face_ranges is None else face_ranges.index_select(0, items[sl])
+            if grad:
+                d = rasterize(clip, faces, (size, size), face_ranges=ranges).depth
+            else:
+                d = rasterize_depth(clip, faces, (size, size), face_ranges=ranges)
+            ndc.append(d.to(positions.dtype))
+        ndc_all = torch.cat(ndc)
+        start = 0
+        for g in members:
+            b, n_lights, nv = g.view.shape[:3]
+            keep = g.rendered.nonzero().flatten()
+            count = b * n_lights * keep.numel()
+            part = ndc_all[start:start + count].view(b, n_lights, keep.numel(), size, size)
+            start += count
+            full = part.new_full((b, n_lights, nv, size, size), float("inf"))
+            full = full.index_copy(2, keep, part)
+            near, far = g.near[..., None, None], g.far[..., None, None]
+            lin = _linear_depth(full, near, far, g.perspective)
+            if g.settings.filter == "vsm":
+                lin = _vsm_moments(lin, near, far, g.settings)
+            else:  # receivers beyond the casters' far plane are lit where nothing was drawn
+                lin = torch.where(torch.isfinite(full), lin, torch.full_like(lin, float("inf")))
+            g.depth = lin
+            what = {"cascades": f"{nv} cascades", "cube": "cube 6 faces",
+                    "single": "1 map"}[g.layout]
+            if g.layout == "cascades" and keep.numel() < nv:
+                what = f"{keep.numel()} of {nv} cascades"
+            g.steps.append(f"shadow {g.kind}{g.lights} {what} {size}x{size} {g.settings.filter}")
+
+
+def _vsm_moments(lin: torch.Tensor, near: torch.Tensor, far: torch.Tensor,
+                 settings: ShadowSettings) -> torch.Tensor:
+    """``(B, Ls, NV, 2, S, S)`` blurred moments (z, z^2) of depth normalised to [0, 1]."""
+    z = ((lin - near) / (far - near)).clamp(0, 1)
+    moments = torch.stack([z, z * z], dim=3)
+    if settings.vsm_blur > 0:
+        import kornia  # noqa: PLC0415 (lazy: kornia is slow to import)
+
+        shape = moments.shape
+        flat = moments.reshape(-1, 2, shape[-2], shape[-1])
+        sigma = float(settings.vsm_blur)
+        k = 2 * math.ceil(3 * sigma) + 1
+        flat = kornia.filters.gaussian_blur2d(flat, (k, k), (sigma, sigma),
+                                              border_type="replicate")
+        moments = flat.view(shape)
+    return moments
+
+
+# ------------------------------------------------------------------------------ lookup
+
+
+def _select_view(g: ShadowMaps, p: torch.Tensor, item: torch.Tensor,
+                 cam_depth: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per pixel and light, the view to sample: ``(P, Ls)`` int64 and the blend weight of
+    the next cascade ``(P, Ls)`` (0 outside blend bands); view -1 = not covered (lit)."""
+    n_p, n_l = p.shape[0], g.view.shape[1]
+    zero = torch.zeros(n_p, n_l, dtype=p.dtype, device=p.device)
+    if g.layout == "single":
+        return torch.zeros(n_p, n_l, dtype=torch.int64, device=p.device), zero
+    if g.layout == "cube":
+        d = p[:, None] - g.light_position.detach().index_select(0, item)  # (P, Ls, 3)
+        axis = d.abs().argmax(-1)  # 0 x, 1 y, 2 z
+        neg = torch.gather(d, 2, axis[..., None])[..., 0] < 0
+        return axis * 2 + neg.long(), zero
+    splits = g.splits.detach().index_select(0, item)  # (P, Ls, C + 1)
+    c = splits.shape[-1] - 1
+    z = cam_depth[:, None].expand(n_p, n_l)
+    idx = (z[..., None] >= splits[..., 1:]).sum(-1)  # first split end beyond z
+    inside = (z >= splits[..., 0]) & (idx < c)
+    idx = idx.clamp_max(c - 1)
+    lo = torch.gather(splits, 2, idx[..., None])[..., 0]
+    hi = torch.gather(splits, 2, idx[..., None] + 1)[..., 0]
+    band = g.settings.cascade_blend * (hi - lo)
+    t = ((z - (hi - band)) / band.clamp_min(1e-12)).clamp(0, 1)
+    t = torch.where((idx < c - 1) & (band > 0), t, torch.zeros_like(t))
+    # a skipped cascade falls through to the next rendered one
+    rendered = g.rendered
+    if not bool(rendered.all()):
+        nxt = torch.full((c,), -1, dtype=torch.int64, device=p.device)
+        for k in range(c - 1, -1, -1):
+            nxt[k] = k if bool(rendered[k]) else (nxt[k + 1] if k + 1 < c else -1)
+        idx = nxt.index_select(0, idx.flatten()).view_as(idx)
+    idx = torch.where(inside, idx, torch.full_like(idx, -1))
+    return idx, t
+
+
+def _project(g: ShadowMaps, p: torch.Tensor, n: torch.Tensor, item: torch.Tensor,
+             view_idx: torch.Tensor):
+    """Map coordinates of receivers: texel x, y ``(P, Ls)`` (continuous, texel centres at
+    integers), receiver depth with bias ``(P, Ls)``, texel size at the receiver (m) and the
+    flat map index ``(P, Ls)``."""
+    n_l, nv = g.view.shape[1], g.view.shape[2]
+    size = g.settings.map_size
+    v_safe = view_idx.clamp_min(0)
+    sel = (item[:, None] * n_l + torch.arange(n_l, device=p.device)) * nv + v_safe  # (P, Ls)
+    view = g.view.reshape(-1, 4, 4).index_select(0, sel.flatten()).view(*sel.shape, 4, 4)
+    proj = g.proj.reshape(-1, 4, 4).index_select(0, sel.flatten()).view(*sel.shape, 4, 4)
+    texel = g.texel.reshape(-1).index_select(0, sel.flatten()).view(sel.shape)
+    # direction to the light and its slope on the receiver
+    if g.kind == "directional":
+        to_light = -g.light_direction.index_select(0, item)  # (P, Ls, 3)
+    else:
+        to_light = safe_normalize(g.light_position.index_select(0, item) - p[:, None], dim=-1)
+    cos = (n[:, None] * to_light).sum(-1).clamp(1e-3, 1.0)
+    tan = (torch.sqrt((1 - cos * cos).clamp_min(0)) / cos).clamp_max(MAX_SLOPE)
+    q = (view[..., :3, :3] @ p[:, None, :, None])[..., 0] + view[..., :3, 3]
+    depth = -q[..., 2]
+    world_texel = texel * depth.abs() if g.perspective else texel
+    s = g.settings
+    p_off = p[:, None] + n[:, None] * (s.normal_bias * world_texel)[..., None]
+    q = (view[..., :3, :3] @ p_off[..., None])[..., 0] + view[..., :3, 3]
+    clip = (proj[..., :, :3] @ q[..., None])[..., 0] + proj[..., :, 3]
+    w = clip[..., 3]
+    w_safe = torch.where(w.abs() > 1e-12, w, torch.ones_like(w))
+    x_ndc, y_ndc = clip[..., 0] / w_safe, clip[..., 1] / w_safe
+    tx = (x_ndc + 1) * (size / 2) - 0.5
+    ty = (1 - y_ndc) * (size / 2) - 0.5
+    z_ref = -q[..., 2] - world_texel * (s.bias + s.slope_bias * tan)
+    valid = (view_idx >= 0) & (w > 1e-12)
+    return tx, ty, z_ref, world_texel, sel, valid
+
+
+def _fetch(maps: torch.Tensor, sel: torch.Tensor, x: torch.Tensor, y: torch.Tensor,
+           size: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Texel values at integer texel coordinates ``x``, ``y`` (any shape ``(P, Ls, ...)``)
+    of map ``sel`` ``(P, Ls)``: (values, inside-the-map mask). ``maps``: ``(M, S*S)``."""
+    inside = (x >= 0) & (x < size) & (y >= 0) & (y < size)
+    xc, yc = x.clamp(0, size - 1), y.clamp(0, size - 1)
+    extra = x.dim() - sel.dim()
+    s = sel.view(*sel.shape, *([1] * extra))
+    flat = (s * (size * size) + yc * size + xc).flatten()
+    return maps.reshape(-1).index_select(0, flat).view(x.shape), inside
+
+
+def _pcf(maps: torch.Tensor, sel: torch.Tensor, tx: torch.Tensor, ty: torch.Tensor,
+         z_ref: torch.Tensor, size: int, bilinear: bool = True) -> torch.Tensor:
+    """Visibility of comparisons at map positions ``tx``, ``ty`` ``(P, Ls, T)`` against
+    ``z_ref`` ``(P, Ls, 1)``: bilinearly weighted 4-texel comparisons (or the nearest
+    texel), averaged over T. Outside the map = lit."""
+    if not bilinear:
+        d, inside = _fetch(maps, sel, torch.round(tx).long(), torch.round(ty).long(), size)
+        lit = ((z_ref <= d) | ~inside).to(tx.dtype)
+        return lit.mean(-1)
+    x0f, y0f = torch.floor(tx.detach()), torch.floor(ty.detach())
+    fx, fy = tx - x0f, ty - y0f
+    x0, y0 = x0f.long(), y0f.long()
+    out = 0
+    for dx, dy, wgt in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)),
+                        (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+        d, inside = _fetch(maps, sel, x0 + dx, y0 + dy, size)
+        lit = ((z_ref <= d) | ~inside).to(tx.dtype)
+        out = out + wgt * lit
+    return out.mean(-1)
+
+
+def _bilinear(maps: torch.Tensor, sel: torch.Tensor, tx: torch.Tensor, ty: torch.Tensor,
+              size: int) -> torch.Tensor:
+    """Bilinear samples ``(P, Ls, C)`` of C-channel maps ``(M, C, S*S)`` (clamped edges)."""
+    x0f, y0f = torch.floor(tx.detach()), torch.floor(ty.detach())
+    fx, fy = (tx - x0f)[..., None], (ty - y0f)[..., None]
+    x0, y0 = x0f.long(), y0f.long()
+    n_c = maps.shape[1]
+    out = 0
+    for dx, dy, wgt in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)),
+                        (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+        xc, yc = (x0 + dx).clamp(0, size - 1), (y0 + dy).clamp(0, size - 1)
+        flat = ((sel * n_c)[..., None] * (size * size)
+                + torch.arange(n_c, device=sel.device) * (size * size)
+                + (yc * size + xc)[..., None])
+        vals = maps.reshape(-1).index_select(0, flat.flatten()).view(flat.shape)
+        out = out + wgt * vals
+    return out
+
+
+def _visibility_of_view(g: ShadowMaps, p, n, item, view_idx) -> torch.Tensor:
+    """``(P, Ls)`` visibility of receivers in the views ``view_idx`` ``(P, Ls)``."""
+    s = g.settings
+    size = s.map_size
+    tx, ty, z_ref, world_texel, sel, valid = _project(g, p, n, item, view_idx)
+    if s.filter == "vsm":
+        maps = g.depth.reshape(-1, 2, size * size)
+        m = _bilinear(maps, sel, tx, ty, size)
+        near = g.near.reshape(-1).index_select(0, sel.flatten()).view(sel.shape)
+        far = g.far.reshape(-1).index_select(0, sel.flatten()).view(sel.shape)
+        z = ((z_ref - near) / (far - near)).clamp(0, 1)
+        mean, sq = m[..., 0], m[..., 1]
+        var = (sq - mean * mean).clamp_min(s.vsm_min_variance)
+        d = z - mean
+        p_max = var / (var + d * d)
+        p_max = ((p_max - s.vsm_bleed) / (1 - s.vsm_bleed)).clamp(0, 1)
+        vis = torch.where(z <= mean, torch.ones_like(p_max), p_max)
+        inside = (tx > -0.5) & (tx < size - 0.5) & (ty > -0.5) & (ty < size - 0.5)
+        vis = torch.where(inside, vis, torch.ones_like(vis))
+        return torch.where(valid, vis, torch.ones_like(vis))
+    maps = g.depth.reshape(-1, size * size)
+    if s.filter == "hard":
+        vis = _pcf(maps, sel, tx[..., None], ty[..., None], z_ref[..., None], size,
+                   bilinear=False)
+        return torch.where(valid, vis, torch.ones_like(vis))
+    taps = tap_pattern(s, p.dtype, p.device)  # (T, 2)
+    radius = torch.full_like(tx, float(s.pcf_radius))
+    if s.filter == "pcss":
+        radius = _pcss_radius(g, maps, sel, tx, ty, z_ref, world_texel, taps)
+    vis = _pcf(maps, sel, tx[..., None] + taps[:, 0] * radius[..., None],
+               ty[..., None] + taps[:, 1] * radius[..., None], z_ref[..., None], size)
+    return torch.where(valid, vis, torch.ones_like(vis))
+
+
+def _pcss_radius(g: ShadowMaps, maps, sel, tx, ty, z_ref, world_texel, taps) -> torch.Tensor:
+    """PCSS filter radius (texels) ``(P, Ls)`` from a blocker search (Fernando 2005)."""
+    s = g.settings
+    size = s.map_size
+    with torch.no_grad():
+        if g.perspective:
+            near = g.near.reshape(-1).index_select(0, sel.flatten()).view(sel.shape)
+            # the light's disc seen from the receiver, on the near plane, in texels there
+            texel_near = g.texel.reshape(-1).index_select(0, sel.flatten()).view(sel.shape)
+            search = s.light_size * (z_ref - near).clamp_min(0) / z_ref.clamp_min(1e-9) / (
+                texel_near * near)
+        else:
+            tan_half = math.tan(math.radians(s.light_size) / 2)
+            search = (z_ref - g.near.reshape(-1).index_select(0, sel.flatten()).view(
+                sel.shape)).clamp_min(0) * tan_half / world_texel
+        search = search.clamp(1.0, s.max_penumbra)
+        x = torch.round(tx[..., None] + taps[:, 0] * search[..., None]).long()
+        y = torch.round(ty[..., None] + taps[:, 1] * search[..., None]).long()
+        d, inside = _fetch(maps, sel, x, y, size)
+        blocker = inside & (d < z_ref[..., None])
+        count = blocker.sum(-1)
+        d_blk = torch.where(blocker, d, torch.zeros_like(d)).sum(-1) / count.clamp_min(1)
+        if g.perspective:
+            width = s.light_size * (z_ref - d_blk).clamp_min(0) / d_blk.clamp_min(1e-9)
+        else:
+            width = (z_ref - d_blk).clamp_min(0) * math.tan(math.radians(s.light_size) / 2)
+        radius = (width / world_texel).clamp(0.5, s.max_penumbra)
+        return torch.where(count > 0, radius, torch.full_like(radius, 0.5))
+
+
+def shadow_visibility(g: ShadowMaps, position: torch.Tensor, normal: torch.Tensor,
+                      receive: torch.Tensor, camera_view: torch.Tensor | None = None
+                      ) -> torch.Tensor:
+    """The fraction of each light of a group that reaches each pixel.
+
+    Args:
+        g: rendered :class:`ShadowMaps` (``g.depth`` set).
+        position: ``(B, 3, H, W)`` world positions; normal: ``(B, 3, H, W)`` unit normals.
+        receive: ``(B, 1, H, W)`` bool: pixels that receive shadows (covered, and their
+            face's ``receive_shadows``).
+        camera_view: ``(B, 4, 4)`` world -> view of the camera (cascade selection).
+
+    Returns:
+        ``(B, Ls, 1, H, W)`` visibility in [0, 1] (1 where not receiving), already scaled
+        by ``settings.intensity``.
+    """
+    b, _, h, w = position.shape
+    n_l = g.view.shape[1]
+    out = position.new_ones(b * h * w, n_l)
+    pix = receive.reshape(-1).nonzero().flatten()
+    if pix.numel() == 0:
+        return out.T.reshape(n_l, b, 1, h, w).permute(1, 0, 2, 3, 4)
+    p_all = position.permute(0, 2, 3, 1).reshape(-1, 3)
+    n_all = normal.permute(0, 2, 3, 1).reshape(-1, 3)
+    taps = 1 if g.settings.filter in ("hard", "vsm") else g.settings.pcf_taps * (
+        2 if g.settings.filter == "pcss" else 1)
+    per = max(1, TAP_CHUNK_ELEMENTS // (n_l * taps * 4))
+    parts = []
+    for k in range(0, pix.numel(), per):
+        idx = pix[k:k + per]
+        p, n = p_all.index_select(0, idx), n_all.index_select(0, idx)
+        item = torch.div(idx, h * w, rounding_mode="floor")
+        cam_depth = None
+        if g.layout == "cascades":
+            cv = camera_view.to(p.dtype).index_select(0, item)
+            cam_depth = -((cv[:, 2, :3] * p).sum(-1) + cv[:, 2, 3]).detach()
+        view_idx, t = _select_view(g, p, item, cam_depth)
+        vis = _visibility_of_view(g, p, n, item, view_idx)
+        if g.layout == "cascades" and bool((t > 0).any()):
+            nxt = torch.where(t > 0, (view_idx + 1).clamp_max(g.view.shape[2] - 1), view_idx)
+            if not bool(g.rendered.all()):
+                nxt = torch.where(g.rendered.index_select(0, nxt.clamp_min(0).flatten()).view_as(
+                    nxt), nxt, view_idx)
+            vis = torch.lerp(vis, _visibility_of_view(g, p, n, item, nxt), t)
+        parts.append(vis)
+    vis = torch.cat(parts)
+    vis = 1 - g.settings.intensity * (1 - vis)
+    out = out.index_copy(0, pix, vis.to(out.dtype))
+    return out.T.reshape(n_l, b, 1, h, w).permute(1, 0, 2, 3, 4)
+
+
+def check_face_flags(name: str, flags: torch.Tensor | None, n_faces: int) -> None:
+    """Check an ``(F,)`` bool per-face flag tensor (``cast_shadows`` / ``receive_shadows``)."""
+    if flags is None:
+        return
+    check_tensor(name, flags, (n_faces,))
+    if flags.dtype != torch.bool:
+        raise TypeError(f"{name}: expected an (F,) bool tensor, got {flags.dtype}")
+
+
+__all__ = ["FILTERS", "ShadowMaps", "ShadowSettings", "cascade_splits", "directional_views",
+           "local_views", "render_shadow_maps", "shadow_visibility", "tap_pattern"]
