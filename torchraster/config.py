@@ -63,6 +63,7 @@ from .shading.lights import (
     PointLights,
     SpotLights,
 )
+from .shading.shadows import FILTERS, PATTERNS, ShadowSettings
 
 #: YAML nodes a config may expand to (aliases expanded): far above any real config, far
 #: below what a "billion laughs" document would make us allocate.
@@ -108,10 +109,56 @@ class TransformConfig(_Strict):
     scale: Positive | Annotated[list[Positive], Field(min_length=3, max_length=3)] = 1.0
 
 
-class SceneConfig(_Strict):
-    """The geometry: a mesh or glTF scene file, relative to the config file."""
+Primitive = Literal["plane", "box", "sphere"]
 
-    mesh: str
+
+class ObjectMaterialConfig(_Strict):
+    """The material of a scene object (glTF metallic-roughness factors)."""
+
+    name: str | None = Field(None, description="material name (matched by `materials:` "
+                             "overrides); default: `object:<object name>`")
+    base_color: Annotated[list[Annotated[float, Field(ge=0, le=1)]],
+                          Field(min_length=3, max_length=4)] = Field(
+        default_factory=lambda: [0.8, 0.8, 0.8])
+    metallic: Annotated[float, Field(ge=0, le=1)] = 0.0
+    roughness: Annotated[float, Field(ge=0, le=1)] = 0.8
+    emissive: Color3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+
+
+class ObjectConfig(_Strict):
+    """One more object of the scene: a mesh file or a primitive built here (a ground plane
+    under a model, a box, a sphere), with its own transform and shadow flags."""
+
+    name: str | None = None
+    mesh: str | None = Field(None, description="mesh / glTF file, relative to the config file")
+    primitive: Primitive | None = Field(
+        None, description="plane: `size` x `size` in XZ facing +Y, centred at the origin; box: "
+        "a cube of side `size`; sphere: diameter `size` (an icosphere)")
+    size: Positive = 1.0
+    transform: TransformConfig = Field(default_factory=TransformConfig)
+    material: ObjectMaterialConfig | None = Field(
+        None, description="for primitives (default: light grey, rough dielectric); a mesh "
+        "file keeps its own materials")
+    cast_shadows: bool = True
+    receive_shadows: bool = True
+
+    @model_validator(mode="after")
+    def _one_source(self) -> ObjectConfig:
+        if (self.mesh is None) == (self.primitive is None):
+            raise ValueError("give exactly one of 'mesh' (a file) or 'primitive' "
+                             "(plane, box, sphere)")
+        if self.mesh is not None and self.material is not None:
+            raise ValueError("'material' is for primitives; a mesh file keeps its own "
+                             "materials (use the top-level 'materials:' overrides)")
+        return self
+
+
+class SceneConfig(_Strict):
+    """The geometry: a mesh or glTF scene file, relative to the config file, and optional
+    further ``objects`` (e.g. a ground plane)."""
+
+    mesh: str | None = Field(None, description="the main mesh / glTF scene (optional when "
+                             "`objects` is given)")
     transform: TransformConfig = Field(default_factory=TransformConfig)
     normals: Literal["auto", "smooth", "flat"] = Field(
         "auto", description="auto: the file's normals (smooth if it has none); smooth: "
@@ -121,6 +168,15 @@ class SceneConfig(_Strict):
     allow_missing_textures: bool = Field(
         False, description="render a mesh whose texture files are missing without them "
         "(with a warning) instead of failing")
+    cast_shadows: bool = Field(True, description="the main mesh is drawn into shadow maps")
+    receive_shadows: bool = Field(True, description="the main mesh is darkened by shadows")
+    objects: list[ObjectConfig] = Field(default_factory=list)
+
+    @model_validator(mode="after")
+    def _something(self) -> SceneConfig:
+        if self.mesh is None and not self.objects:
+            raise ValueError("give 'mesh' (a file) or at least one entry in 'objects'")
+        return self
 
 
 class OrbitConfig(_Strict):
@@ -182,9 +238,10 @@ class RenderConfig(_Strict):
     resolution: Annotated[int, Field(ge=1, le=MAX_RESOLUTION)] | Annotated[
         list[Annotated[int, Field(ge=1, le=MAX_RESOLUTION)]], Field(min_length=2, max_length=2)
     ] = Field(512, description="[H, W] in pixels, or one int for a square image")
-    shading: Literal[SHADING] = Field(  # type: ignore[valid-type]
-        "headlight", description="pbr needs lights or an environment; headlight is Lambert "
-        "lit from the camera; unlit is albedo + emissive")
+    shading: Literal[SHADING] | None = Field(  # type: ignore[valid-type]
+        None, description="default: pbr when the config has lights or an environment, else "
+        "headlight. pbr needs lights or an environment; headlight is Lambert lit from the "
+        "camera; unlit is albedo + emissive (both ignore lights, so they refuse them)")
     background: Color3 = Field(
         default_factory=lambda: list(default_of(Renderer, "background")),
         description="linear RGB of empty pixels (the environment replaces it when shown)")
@@ -219,6 +276,50 @@ class EnvironmentConfig(_Strict):
     background: bool = True
 
 
+def _shadow_default(name: str) -> Any:
+    return default_of(ShadowSettings, name)
+
+
+class ShadowConfig(_Strict):
+    """Shadow maps of one light (``enabled: true`` is what ``cast_shadows: true`` means).
+    Sizes and biases are in shadow-map texels; see docs/design.md, "Shadows"."""
+
+    enabled: bool = True
+    map_size: Annotated[int, Field(ge=8, le=8192)] = _shadow_default("map_size")
+    filter: Literal[FILTERS] = Field(  # type: ignore[valid-type]
+        _shadow_default("filter"), description="hard (1 tap), pcf, pcss (contact-hardening "
+        "penumbra from light_size) or vsm (variance shadow maps)")
+    pcf_radius: Annotated[float, Field(ge=0, le=64)] = _shadow_default("pcf_radius")
+    pcf_taps: Annotated[int, Field(ge=1, le=256)] = _shadow_default("pcf_taps")
+    pcf_pattern: Literal[PATTERNS] = _shadow_default("pcf_pattern")  # type: ignore[valid-type]
+    bias: Annotated[float, Field(ge=0, le=1000)] = Field(
+        _shadow_default("bias"), description="constant depth bias (texels)")
+    slope_bias: Annotated[float, Field(ge=0, le=1000)] = Field(
+        _shadow_default("slope_bias"), description="slope-scaled depth bias (texels)")
+    normal_bias: Annotated[float, Field(ge=0, le=1000)] = Field(
+        _shadow_default("normal_bias"), description="normal offset of receivers (texels)")
+    intensity: Annotated[float, Field(ge=0, le=1)] = Field(
+        _shadow_default("intensity"), description="0 = no darkening, 1 = full")
+    cascades: Annotated[int, Field(ge=1, le=4)] = Field(
+        _shadow_default("cascades"), description="cascaded maps (directional lights only)")
+    split_lambda: Annotated[float, Field(ge=0, le=1)] = _shadow_default("split_lambda")
+    cascade_blend: Annotated[float, Field(ge=0, le=0.5)] = _shadow_default("cascade_blend")
+    max_distance: Positive | None = Field(
+        _shadow_default("max_distance"), description="directional: cascades end at this "
+        "camera depth (m); default the farthest scene point")
+    light_size: Annotated[float, Field(ge=0, le=1e6)] = Field(
+        _shadow_default("light_size"), description="pcss: radius (m) of point / spot lights, "
+        "angular diameter (degrees) of directional lights")
+    max_penumbra: Annotated[float, Field(ge=0.5, le=64)] = _shadow_default("max_penumbra")
+    vsm_blur: Annotated[float, Field(ge=0, le=64)] = _shadow_default("vsm_blur")
+    vsm_bleed: Annotated[float, Field(ge=0, le=0.99)] = _shadow_default("vsm_bleed")
+    vsm_min_variance: Annotated[float, Field(ge=0, le=1)] = _shadow_default("vsm_min_variance")
+
+    def settings(self) -> ShadowSettings:
+        """The :class:`~torchraster.shading.shadows.ShadowSettings` of this block."""
+        return ShadowSettings(**self.model_dump(exclude={"enabled"}))
+
+
 class _LightConfigBase(_Strict):
     name: str | None = None
     color: Color3 = Field(default_factory=lambda: list(DEFAULT_COLOR))
@@ -242,12 +343,36 @@ class AmbientLightConfig(_LightConfigBase):
     sh: Annotated[list[Vec3], Field(min_length=9, max_length=9)] | None = None
 
 
+def _check_shadow_switch(light: Any) -> Any:
+    if light.cast_shadows is not None and light.shadows is not None and (
+            light.cast_shadows != light.shadows.enabled):
+        raise ValueError(f"cast_shadows: {str(light.cast_shadows).lower()} contradicts "
+                         f"shadows.enabled: {str(light.shadows.enabled).lower()}; give one")
+    return light
+
+
+def _casts(light: Any) -> bool:
+    if light.shadows is not None:
+        return light.shadows.enabled
+    return bool(light.cast_shadows)
+
+
+def _shadow_settings(light: Any) -> ShadowSettings | None:
+    return light.shadows.settings() if light.shadows is not None else None
+
+
 class DirectionalLightConfig(_DirectionMixin, _LightConfigBase):
     """Directional light: ``direction`` the light travels (default -Z, glTF), lux."""
 
     type: Literal["directional"]
     direction: Vec3 = Field(default_factory=lambda: list(DEFAULT_DIRECTION))
-    cast_shadows: bool = False
+    cast_shadows: bool | None = Field(None, description="true: shadows with default settings "
+                                      "(same as `shadows: {}`)")
+    shadows: ShadowConfig | None = None
+
+    @model_validator(mode="after")
+    def _shadow_switch(self) -> DirectionalLightConfig:
+        return _check_shadow_switch(self)
 
 
 class PointLightConfig(_LightConfigBase):
@@ -256,7 +381,17 @@ class PointLightConfig(_LightConfigBase):
     type: Literal["point"]
     position: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
     range: Annotated[float, Field(gt=0.0)] | None = None
-    cast_shadows: bool = False
+    cast_shadows: bool | None = Field(None, description="true: shadows with default settings "
+                                      "(same as `shadows: {}`)")
+    shadows: ShadowConfig | None = None
+
+    @model_validator(mode="after")
+    def _shadow_switch(self) -> PointLightConfig:
+        if self.shadows is not None and (self.shadows.cascades != 1
+                                         or self.shadows.max_distance is not None):
+            raise ValueError("shadows.cascades / shadows.max_distance are for directional "
+                             "lights only")
+        return _check_shadow_switch(self)
 
 
 class SpotLightConfig(_DirectionMixin, PointLightConfig):
@@ -422,13 +557,29 @@ class RenderFile(_Strict):
     outputs: OutputConfig = Field(default_factory=OutputConfig)
 
     # Set by parse_config: the folder relative paths are resolved against, the source name
-    # and the line of every key path (for errors found after validation).
-    base_dir: Path = Field(default=Path("."), exclude=True)
+    # and the line of every key path (for errors found after validation). Private, so a
+    # `base_dir:` key in a file is an unknown key, not silently overwritten.
+    _base_dir: Path = PrivateAttr(default=Path("."))
     _source: str = PrivateAttr(default="<config>")
     _lines: dict = PrivateAttr(default_factory=dict)
 
+    @property
+    def base_dir(self) -> Path:
+        """The folder relative paths resolve against (the config file's folder)."""
+        return self._base_dir
+
+    @base_dir.setter
+    def base_dir(self, value: str | Path) -> None:
+        self._base_dir = Path(value)
+
     @model_validator(mode="after")
     def _pbr_needs_light(self) -> RenderFile:
+        lit = bool(self.lights) or self.environment is not None
+        if self.render.shading is None:
+            self.render.shading = "pbr" if lit else "headlight"
+        elif self.render.shading != "pbr" and self.lights:
+            raise ValueError(f"render.shading {self.render.shading!r} ignores 'lights:'; remove "
+                             "them, or use shading: pbr (the default when lights are given)")
         if self.render.shading == "pbr" and not self.lights and self.environment is None:
             raise ValueError("render.shading 'pbr' needs light: add a 'lights:' entry or an "
                              "'environment:', or use shading: headlight / unlit")
@@ -681,16 +832,20 @@ def check_config(cfg: RenderFile) -> None:
         elif not p.is_file():
             problems.append(f"{cfg.where(*loc)}: file not found: {p}")
 
-    need_file(("scene", "mesh"), cfg.scene.mesh)
-    mesh = cfg.resolve(cfg.scene.mesh)
-    if mesh.is_file() and not cfg.scene.allow_missing_textures:
-        from .io import missing_textures
+    meshes = [(("scene", "mesh"), cfg.scene.mesh)] if cfg.scene.mesh is not None else []
+    meshes += [(("scene", "objects", i, "mesh"), o.mesh)
+               for i, o in enumerate(cfg.scene.objects) if o.mesh is not None]
+    for loc, relative in meshes:
+        need_file(loc, relative)
+        mesh = cfg.resolve(relative)
+        if mesh.is_file() and not cfg.scene.allow_missing_textures:
+            from .io import missing_textures
 
-        missing = missing_textures(mesh)
-        if missing:
-            problems.append(f"{cfg.where('scene', 'mesh')}: {mesh.name} refers to missing "
-                            f"texture file(s) {', '.join(missing)} (set "
-                            "scene.allow_missing_textures: true to render without them)")
+            missing = missing_textures(mesh)
+            if missing:
+                problems.append(f"{cfg.where(*loc)}: {mesh.name} refers to missing texture "
+                                f"file(s) {', '.join(missing)} (set "
+                                "scene.allow_missing_textures: true to render without them)")
     if cfg.environment is not None:
         need_file(("environment", "path"), cfg.environment.path)
     for i, m in enumerate(cfg.materials):
@@ -822,7 +977,8 @@ def lights_from_config(
             direction=tensor([c.direction for c in d], (3,)),
             color=tensor([c.color for c in d], (3,)),
             intensity=tensor([c.intensity for c in d]),
-            cast_shadows=shadows([c.cast_shadows for c in d]),
+            cast_shadows=shadows([_casts(c) for c in d]),
+            shadow=tuple(_shadow_settings(c) for c in d),
         )
     if p := by_type["point"]:
         point = PointLights(
@@ -830,7 +986,8 @@ def lights_from_config(
             color=tensor([c.color for c in p], (3,)),
             intensity=tensor([c.intensity for c in p]),
             range=tensor([inf_if_none(c.range) for c in p]),
-            cast_shadows=shadows([c.cast_shadows for c in p]),
+            cast_shadows=shadows([_casts(c) for c in p]),
+            shadow=tuple(_shadow_settings(c) for c in p),
         )
     if s := by_type["spot"]:
         spot = SpotLights(
@@ -841,7 +998,8 @@ def lights_from_config(
             range=tensor([inf_if_none(c.range) for c in s]),
             inner_cone_angle=tensor([c.inner_cone_angle for c in s]),
             outer_cone_angle=tensor([c.outer_cone_angle for c in s]),
-            cast_shadows=shadows([c.cast_shadows for c in s]),
+            cast_shadows=shadows([_casts(c) for c in s]),
+            shadow=tuple(_shadow_settings(c) for c in s),
         )
     return Lights(ambient=ambient, directional=directional, point=point, spot=spot)
 

@@ -28,6 +28,8 @@ from . import camera
 from .config import (
     CameraConfig,
     ConfigError,
+    ObjectConfig,
+    ObjectMaterialConfig,
     RenderFile,
     TransformConfig,
     build_post_chain,
@@ -39,6 +41,7 @@ from .config import (
 from .hdr_io import read_hdr
 from .io import load_scene, load_texture
 from .material import Material
+from .mesh import Mesh, vertex_normals
 from .mesh import flat as flat_mesh
 from .post import EncodeSRGB, PostChain
 from .renderer import RenderPlan
@@ -84,22 +87,127 @@ def _transform_matrix(t: TransformConfig) -> torch.Tensor:
 
 
 def build_scene(cfg: RenderFile) -> RenderScene:
-    """Load and transform the config's scene into a :class:`RenderScene` (names the file on
-    error)."""
-    path = cfg.resolve(cfg.scene.mesh)
-    scene = load_scene(path, max_texture_size=cfg.scene.max_texture_size,
+    """Load and transform the config's scene (the main mesh and every entry of
+    ``scene.objects``) into one :class:`RenderScene` with per-face materials and shadow
+    flags (names the file on error)."""
+    parts: list[_Part] = []
+    sc = cfg.scene
+    if sc.mesh is not None:
+        parts.append(_file_part(cfg, sc.mesh, sc.transform, sc.normals, sc.cast_shadows,
+                                sc.receive_shadows))
+    for i, obj in enumerate(sc.objects):
+        if obj.mesh is not None:
+            parts.append(_file_part(cfg, obj.mesh, obj.transform, "auto", obj.cast_shadows,
+                                    obj.receive_shadows))
+        else:
+            parts.append(_primitive_part(obj, obj.name or f"{obj.primitive}{i}"))
+    for part in parts:
+        part.materials = [_override(mat, cfg) for mat in part.materials]
+    return _merge(parts)
+
+
+@dataclass
+class _Part:
+    """One object of a config's scene, in world space."""
+
+    positions: torch.Tensor
+    faces: torch.Tensor
+    normals: torch.Tensor | None
+    uvs: torch.Tensor | None
+    tangents: torch.Tensor | None
+    face_material: torch.Tensor
+    materials: list
+    cast: torch.Tensor
+    receive: torch.Tensor
+
+
+def _file_part(cfg: RenderFile, relative: str, transform: TransformConfig, normals_mode: str,
+               cast: bool, receive: bool) -> _Part:
+    scene = load_scene(cfg.resolve(relative), max_texture_size=cfg.scene.max_texture_size,
                        allow_missing_textures=cfg.scene.allow_missing_textures)
     mesh, face_material, materials = scene.flatten()
-    if cfg.scene.normals == "flat":
+    node_cast, node_receive = scene.face_shadow_flags()
+    if normals_mode == "flat":
         mesh = flat_mesh(mesh)
-    m = _transform_matrix(cfg.scene.transform)
+    m = _transform_matrix(transform)
     positions = mesh.positions @ m[:3, :3].T + m[:3, 3]
     normals = None
-    if mesh.normals is not None and cfg.scene.normals != "smooth":
+    if mesh.normals is not None and normals_mode != "smooth":
         normals = torch.nn.functional.normalize(mesh.normals @ torch.linalg.inv(m[:3, :3]), dim=-1)
-    materials = [_override(mat, cfg) for mat in materials]
-    return RenderScene(positions, mesh.faces, normals, mesh.uvs, mesh.tangents, face_material,
-                       materials)
+    return _Part(positions, mesh.faces, normals, mesh.uvs, mesh.tangents, face_material,
+                 list(materials), node_cast & cast, node_receive & receive)
+
+
+def _primitive_part(obj: ObjectConfig, name: str) -> _Part:
+    """A plane, box or sphere of ``obj.size`` with its material, in world space."""
+    import trimesh
+
+    s = float(obj.size)
+    if obj.primitive == "plane":
+        h = s / 2
+        positions = torch.tensor([[-h, 0, -h], [h, 0, -h], [h, 0, h], [-h, 0, h]])
+        faces = torch.tensor([[0, 2, 1], [0, 3, 2]])  # counter-clockwise seen from +Y
+        normals = torch.tensor([[0.0, 1.0, 0.0]]).expand(4, 3)
+        uvs = torch.tensor([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    else:
+        tm = (trimesh.creation.box(extents=[s, s, s]) if obj.primitive == "box"
+              else trimesh.creation.icosphere(subdivisions=3, radius=s / 2))
+        mesh = Mesh(torch.tensor(tm.vertices, dtype=torch.float32),
+                    torch.tensor(tm.faces, dtype=torch.int64))
+        if obj.primitive == "box":
+            mesh = flat_mesh(mesh)  # sharp edges: one normal per face
+            positions, faces, normals = mesh.positions, mesh.faces, mesh.normals
+        else:
+            positions, faces = mesh.positions, mesh.faces
+            normals = torch.nn.functional.normalize(positions, dim=-1)
+        uvs = None
+    m = _transform_matrix(obj.transform)
+    positions = positions.float() @ m[:3, :3].T + m[:3, 3]
+    normals = torch.nn.functional.normalize(normals.float() @ torch.linalg.inv(m[:3, :3]),
+                                            dim=-1)
+    mc = obj.material or ObjectMaterialConfig()
+    rgba = list(mc.base_color) + ([1.0] if len(mc.base_color) == 3 else [])
+    material = Material(name=mc.name or f"object:{name}", base_color_factor=torch.tensor(rgba),
+                        metallic_factor=mc.metallic, roughness_factor=mc.roughness,
+                        emissive_factor=torch.tensor(mc.emissive),
+                        double_sided=obj.primitive == "plane")
+    n_faces = faces.shape[0]
+    return _Part(positions, faces, normals, uvs, None,
+                 torch.zeros(n_faces, dtype=torch.int64), [material],
+                 torch.full((n_faces,), obj.cast_shadows), torch.full((n_faces,),
+                                                                      obj.receive_shadows))
+
+
+def _merge(parts: list[_Part]) -> RenderScene:
+    """One RenderScene of all parts (missing normals computed, missing UVs / tangents
+    zero-filled where another part has them)."""
+    if len(parts) == 1 and bool(parts[0].cast.all()) and bool(parts[0].receive.all()):
+        p = parts[0]
+        return RenderScene(p.positions, p.faces, p.normals, p.uvs, p.tangents, p.face_material,
+                           p.materials)
+    any_uv = any(p.uvs is not None for p in parts)
+    any_tan = any(p.tangents is not None for p in parts)
+    pos, faces, nrm, uvs, tan, fmat, mats = [], [], [], [], [], [], []
+    offset = 0
+    for p in parts:
+        n_vert = p.positions.shape[0]
+        pos.append(p.positions)
+        faces.append(p.faces + offset)
+        nrm.append(p.normals if p.normals is not None
+                   else vertex_normals(p.positions, p.faces).reshape(-1, 3))
+        if any_uv:
+            uvs.append(p.uvs if p.uvs is not None else p.positions.new_zeros(n_vert, 2))
+        if any_tan:
+            tan.append(p.tangents if p.tangents is not None else p.positions.new_zeros(n_vert, 4))
+        fmat.append(p.face_material + len(mats))
+        mats += p.materials
+        offset += n_vert
+    cast = torch.cat([p.cast for p in parts])
+    receive = torch.cat([p.receive for p in parts])
+    return RenderScene(torch.cat(pos), torch.cat(faces), torch.cat(nrm),
+                       torch.cat(uvs) if any_uv else None, torch.cat(tan) if any_tan else None,
+                       torch.cat(fmat), mats, cast_shadows=None if bool(cast.all()) else cast,
+                       receive_shadows=None if bool(receive.all()) else receive)
 
 
 def _override(mat: Material | None, cfg: RenderFile) -> Material | None:
@@ -197,11 +305,17 @@ def iter_render(cfg: RenderFile, device: str | torch.device = "cpu"
 
     Yields:
         Callables returning a :class:`ViewResult`, one per camera, in order.
+
+    Raises:
+        NotImplementedError: for ``post.auto_exposure.rate``: adaptation over time needs a
+            sequence of frames, and a config renders independent stills.
     """
-    scene = build_scene(cfg)
-    scene = RenderScene(*(t.to(device) if isinstance(t, torch.Tensor) else t for t in (
-        scene.positions, scene.faces, scene.normals, scene.uvs, scene.tangents,
-        scene.face_material)), [m.to(device) if m is not None else None for m in scene.materials])
+    if cfg.post is not None and "rate" in cfg.post.auto_exposure.model_fields_set:
+        raise NotImplementedError(
+            "post.auto_exposure.rate: adaptation over time needs a sequence of frames; a "
+            "render config renders independent stills (fully adapted), so rate would have no "
+            "effect. Remove it (AutoExposure(rate=...) in Python adapts across frames).")
+    scene = build_scene(cfg).to(device)
     res = cfg.render.size
     lights = lights_from_config(cfg.lights, 1, device) if cfg.lights else None
     env = None

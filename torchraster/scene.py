@@ -101,6 +101,13 @@ class RenderScene:
                     raise TypeError(f"RenderScene.{name}: expected an (F,) bool tensor, got "
                                     f"{flags.dtype}")
 
+    def to(self, device: torch.device | str) -> RenderScene:
+        """The same scene with every tensor (and material texture) on ``device``."""
+        moved = {f: (v.to(device) if isinstance(v, torch.Tensor) else v)
+                 for f, v in vars(self).items() if f != "materials"}
+        return RenderScene(**moved, materials=[m.to(device) if m is not None else None
+                                               for m in self.materials])
+
     @property
     def batch_size(self) -> int:
         """B of the per-item tensors (1 when every tensor is shared)."""

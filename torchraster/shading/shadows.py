@@ -89,7 +89,7 @@ class ShadowSettings:
         slope_bias: slope-scaled depth bias, in texels per unit tan(angle to the light).
         normal_bias: normal offset of the receiver, in texels.
         intensity: shadow strength: 0 = no darkening, 1 = fully occluded light is black.
-        cascades: cascaded maps of a directional light (1-4; other lights ignore it).
+        cascades: cascaded maps of a directional light (1-4; must be 1 for other lights).
         split_lambda: cascade split blend: 0 uniform, 1 logarithmic.
         cascade_blend: fraction of a cascade's depth range blended into the next one.
         max_distance: directional cascades cover camera depths up to this (m); None = the
@@ -460,6 +460,10 @@ def local_views(kind: str, position: torch.Tensor, direction: torch.Tensor | Non
     b, n_lights, _ = position.shape
     dtype, device = position.dtype, position.device
     size = settings.map_size
+    if settings.cascades != 1 or settings.max_distance is not None:
+        raise ValueError(f"ShadowSettings.cascades / max_distance: cascades are for directional "
+                         f"lights; a {kind} light's settings must keep cascades=1, "
+                         "max_distance=None")
     # widen each view by a margin of texels so that filter taps stay inside it
     margin = (settings.max_penumbra if settings.filter == "pcss" else settings.pcf_radius) + 2
     margin = min(margin, size / 4)
