@@ -13,16 +13,12 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+import torch
+import trimesh
+from benchmd import markdown_table, median_time, update_section
 
-import torch  # noqa: E402
-import trimesh  # noqa: E402
-from benchmd import markdown_table, median_time, update_section  # noqa: E402
-
-import torchraster as tr  # noqa: E402
+import torchraster as tr
 
 raster_mod = importlib.import_module("torchraster.raster.rasterize")
 

@@ -22,22 +22,18 @@ import argparse
 import math
 import os
 import statistics
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).parent))
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+import kornia
+import numpy as np
+import torch
+import torch.nn.functional as F
+from benchmd import markdown_table, median_time, update_section
 
-import kornia  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-import torch.nn.functional as F  # noqa: E402
-from benchmd import markdown_table, median_time, update_section  # noqa: E402
-
-from torchraster.config import BloomConfig, DOFConfig, SSAOConfig  # noqa: E402
-from torchraster.post import (  # noqa: E402
+from torchraster.config import BloomConfig, DOFConfig, SSAOConfig
+from torchraster.post import (
     SSAO,
     AutoExposure,
     Bloom,
@@ -48,7 +44,7 @@ from torchraster.post import (  # noqa: E402
     circle_of_confusion,
     gaussian_blur,
 )
-from torchraster.post.dof import COC_RAMP_PX  # noqa: E402
+from torchraster.post.dof import COC_RAMP_PX
 
 ROOT = Path(__file__).resolve().parent.parent
 IMAGES = ROOT / "docs" / "images"

@@ -20,23 +20,18 @@ from __future__ import annotations
 import argparse
 import math
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
+from benchmd import markdown_table, median_time, update_section
 
-sys.path.insert(0, str(Path(__file__).parent))
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from benchmd import markdown_table, median_time, update_section  # noqa: E402
-
-from torchraster.hdr_io import read_hdr  # noqa: E402
-from torchraster.shading import ibl  # noqa: E402
-from torchraster.shading.brdf import d_ggx  # noqa: E402
-from torchraster.texture import (  # noqa: E402
+from torchraster.hdr_io import read_hdr
+from torchraster.shading import ibl
+from torchraster.shading.brdf import d_ggx
+from torchraster.texture import (
     MipTexture,
     latlong_directions,
     latlong_solid_angles,

@@ -4,8 +4,9 @@ For 5k / 80k / ~1.3M-face spheres (trimesh icospheres), 256^2 / 512^2 / 1024^2 a
 1 / 8 (cameras orbiting the sphere), each configuration runs in its own subprocess, which
 reports the median time of repeated calls, the peak resident memory the calls added, and,
 in the same process and run, the median time of llvmpipe (OpenGL on the CPU via moderngl,
-``scripts/llvmpipe.py``) on the identical clip-space input, from arrays to arrays. A second
-table keeps the triangle count fixed and grows the triangles: peak memory must stay flat.
+``torchraster/testing/llvmpipe.py``) on the identical clip-space input, from arrays to
+arrays. A second table keeps the triangle count fixed and grows the triangles: peak memory
+must stay flat.
 
     python scripts/bench_raster.py            # full table (~10 min on 2 cores)
     python scripts/bench_raster.py --quick    # a few rows
@@ -22,9 +23,6 @@ import statistics
 import subprocess
 import sys
 import time
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 SUBDIV = {"5k": 4, "80k": 6, "1.3M": 8}
 
@@ -79,7 +77,7 @@ def worker(spec: dict) -> dict:
     out = {"ours_s": statistics.median(times), "peak_mb": _peak_mb() - rss0,
            "covered": float((img.abs().sum(1) > 0).float().mean())}
     if spec.get("gl"):
-        import llvmpipe
+        from torchraster.testing import llvmpipe
 
         if llvmpipe.available():
             gl = llvmpipe.GLRasterizer(res, res)
@@ -152,8 +150,9 @@ def main() -> None:
         "Icospheres seen from cameras orbiting at distance 3 (fov 45°), no back-face culling "
         "in either rasterizer; llvmpipe gets the identical clip-space input and returns face "
         "ids + interpolated normals to numpy (upload, draw, read back: "
-        "`scripts/llvmpipe.py`). Median of repeated calls after a warm-up; each row in its own "
-        "process; peak MB = resident memory the calls added over the process baseline. "
+        "`torchraster/testing/llvmpipe.py`). Median of repeated calls after a warm-up; each "
+        "row in its own process; peak MB = resident memory the calls added over the process "
+        "baseline. "
         f"llvmpipe: {gl.get('gl_renderer', 'n/a')}, LP_NUM_THREADS={gl.get('gl_threads', 'n/a')}."
         f"\n\n{table}\n\nBatch scaling (time of batch 8 / batch 1; 8 = linear):\n\n"
         f"{scaling_table}\n\nPeak memory does not grow with triangle size: the same full-screen "

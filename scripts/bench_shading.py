@@ -14,20 +14,16 @@ import argparse
 import math
 import os
 import statistics
-import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).parent))
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+import torch
+from benchmd import markdown_table, update_section
 
-import torch  # noqa: E402
-from benchmd import markdown_table, update_section  # noqa: E402
-
-from torchraster.config import lights_from_config  # noqa: E402
+from torchraster.config import lights_from_config
 from torchraster.gbuffer import GBuffer
-from torchraster.shading import MODELS, shade  # noqa: E402
-from torchraster.shading.lighting import LIGHT_CHUNK_ELEMENTS  # noqa: E402
+from torchraster.shading import MODELS, shade
+from torchraster.shading.lighting import LIGHT_CHUNK_ELEMENTS
 
 
 def gbuffer(b: int, h: int, w: int, requires_grad: bool = False):

@@ -74,7 +74,7 @@ def sphere_grid(env: Environment, size: int) -> None:
                                          metallic_factor=metallic, roughness_factor=roughness))
     pos = torch.cat(positions)
     scene = tr.RenderScene(pos, torch.cat(all_faces), tr.vertex_normals(pos, torch.cat(
-        all_faces))[0], face_material=torch.cat(face_material), materials=materials)
+        all_faces)), face_material=torch.cat(face_material), materials=materials)
     view = tr.camera.look_at([0.0, 0.0, 9.0], [0.0, 0.0, 0.0])
     proj = tr.camera.perspective(32.0, 1.0, 0.1)
     with torch.no_grad():

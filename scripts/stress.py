@@ -1,6 +1,6 @@
-"""Stress the rasterizer with thousands of random hostile scenes and count what goes wrong.
+"""Stress the rasterizer and the renderer with random hostile scenes; count what goes wrong.
 
-Scene kinds (cycled):
+Rasterizer scene kinds (cycled):
 - soup: hostile triangle soups (slivers, degenerate, near/far crossers, behind the camera) with
   random homogeneous scale 10^[-6, 8], batch 1-4, resolutions from 1x1 to 160x160, float32 or
   float64, culling on/off;
@@ -18,10 +18,30 @@ For every scene: NaN/Inf in bary, depth of covered pixels, |depth| > 1, interpol
 and the gradients of a random loss backpropagated through interpolate to clip_pos and the
 attributes. Writes section ``stress`` of docs/benchmarks.md with the counts.
 
-    python scripts/stress.py [--n 1000] [--seed 0] [--no-picture]
+Renderer scene kinds (cycled), each a ground plane with a sphere resting on it (and a
+zero-area triangle), rendered forward and backward through ``tr.Renderer``:
+- material: hostile material factors and float textures (0, denormal 1e-40, 1e-6, 1e6
+  emission, roughness 0, metallic 0 / 1, inward or zero normal-map texels) under a sun and
+  ambient light;
+- light: hostile lights: intensities and colours 0 / 1e-40 / 1e6, directions grazing the
+  plane, from below or of length 1e-15, point and spot lights exactly on a vertex, inside
+  the sphere or 1e6 away, ranges 1e-6 to inf, cones of zero width or pi/2;
+- environment: hostile environment maps (1 to 32 rows; zero, denormal, a single 1e6 texel),
+  intensities 0 to 1e6, both diffuse methods, shown as background or not;
+- grazing: all of the above at random, cameras edge-on to the plane (elevation 0 or 1e-4
+  degrees) and from below it, supersampling, SSAO, every texture filter, float64.
+For every render: NaN/Inf in the image, alpha and every float G-buffer channel, and in the
+gradients of a random loss with respect to vertex positions, material parameters, light
+parameters and the environment. A ``ValueError``/``TypeError`` is counted apart (the clear
+rejection of an input); any other exception is a problem. Writes section
+``stress-renderer``.
 
-Unless --no-picture, also renders docs/images/raster_ref_diff.png: engine vs the independent
-float64 reference (tests/reference_raster.py) face ids for spot, and their difference.
+    python scripts/stress.py [--part all|raster|renderer] [--n 5000] [--n-renderer 1000]
+                             [--seed 0] [--no-picture]
+
+Unless --no-picture, the raster part also renders docs/images/raster_ref_diff.png: engine vs
+the independent float64 reference (torchraster/testing/reference_raster.py) face ids for
+spot, and their difference.
 """
 
 from __future__ import annotations
@@ -30,19 +50,18 @@ import argparse
 import math
 import sys
 import time
+import warnings
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
 import trimesh
+from benchmd import markdown_table, update_section
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(Path(__file__).parent))
-sys.path.insert(0, str(ROOT / "tests"))
-sys.path.insert(0, str(ROOT))
-
-from benchmd import markdown_table, update_section  # noqa: E402
-from reference_raster import (  # noqa: E402
+import torchraster as tr
+from torchraster.mesh import vertex_normals, vertex_tangents
+from torchraster.testing.reference_raster import (
     look_at_matrix,
     perspective_matrix,
     random_soup,
@@ -50,7 +69,7 @@ from reference_raster import (  # noqa: E402
     to_clip,
 )
 
-import torchraster as tr  # noqa: E402
+ROOT = Path(__file__).resolve().parent.parent
 
 KINDS = ("soup", "huge", "near_far", "closed", "grid")
 DEPTH_SLACK = 1e-5  # |NDC depth| of a covered pixel may exceed 1 by float rounding only
@@ -222,30 +241,44 @@ def scene_grid(gen: torch.Generator, c: Counter) -> None:
     c["cracks"] += int((counts[interior] == 0).sum())
 
 
-def run(n: int, seed: int) -> tuple[dict[str, Counter], float]:
+def raster_scene(gen: torch.Generator, kind: str, c: Counter) -> None:
+    """One random rasterizer scene of ``kind`` (see the module docstring)."""
+    if kind in ("soup", "huge"):
+        scene_soup(gen, c, huge=kind == "huge")
+    elif kind == "near_far":
+        scene_near_far(gen, c)
+    elif kind == "closed":
+        scene_closed(gen, c)
+    else:
+        scene_grid(gen, c)
+
+
+def run_scenes(n: int, seed: int, kinds: tuple[str, ...],
+               scene: Callable[[torch.Generator, str, Counter], None],
+               rejections: tuple[type[Exception], ...] = (), label: str = "scenes",
+               every: int = 100) -> tuple[dict[str, Counter], float]:
+    """Run ``n`` random scenes, the kinds in turn; count per kind. An exception of a type in
+    ``rejections`` is counted as "rejected", any other as a finding ("exceptions")."""
     gen = torch.Generator().manual_seed(seed)
-    counts = {k: Counter() for k in KINDS}
+    counts = {k: Counter() for k in kinds}
     start = time.perf_counter()
     for i in range(n):
-        kind = KINDS[i % len(KINDS)]
+        kind = kinds[i % len(kinds)]
         c = counts[kind]
         c["scenes"] += 1
         try:
-            if kind in ("soup", "huge"):
-                scene_soup(gen, c, huge=kind == "huge")
-            elif kind == "near_far":
-                scene_near_far(gen, c)
-            elif kind == "closed":
-                scene_closed(gen, c)
-            else:
-                scene_grid(gen, c)
-        except Exception as exc:  # noqa: BLE001 - every exception is a finding to count
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                scene(gen, kind, c)
+        except rejections as exc:
+            c["rejected"] += 1
+            print(f"{label} {i} ({kind}) rejected: {type(exc).__name__}: {exc}", file=sys.stderr)
+        except Exception as exc:  # noqa: BLE001 - every other exception is a finding
             c["exceptions"] += 1
-            print(f"scene {i} ({kind}): {type(exc).__name__}: {exc}", file=sys.stderr)
-        if (i + 1) % 100 == 0:
-            print(f"{i + 1}/{n} scenes, {time.perf_counter() - start:.0f} s", file=sys.stderr)
+            print(f"{label} {i} ({kind}): {type(exc).__name__}: {exc}", file=sys.stderr)
+        if (i + 1) % every == 0:
+            print(f"{i + 1}/{n} {label}, {time.perf_counter() - start:.0f} s", file=sys.stderr)
     return counts, time.perf_counter() - start
-
 
 COLUMNS = [
     ("scenes", "scenes"), ("pixels", "pixels"), ("covered", "covered"),
@@ -266,9 +299,14 @@ def picture(path: Path) -> None:
     (red: pixels whose face differs; grey: covered in the reference)."""
     import numpy as np
     from PIL import Image, ImageDraw
-    from reference_raster import compare_fragments, load_mesh, reference_rasterize
 
-    data = ROOT.parent / "shared" / "data" / "meshes" / "spot" / "spot_triangulated.obj"
+    from torchraster.testing.reference_raster import (
+        compare_fragments,
+        load_mesh,
+        reference_rasterize,
+    )
+
+    data = ROOT / "torchraster" / "assets" / "spot" / "spot_triangulated.obj"
     verts, faces = load_mesh(str(data))
     gen = torch.Generator().manual_seed(3)
     eye = torch.tensor([1.5, 0.7, 2.0], dtype=torch.float64)
@@ -304,18 +342,265 @@ def picture(path: Path) -> None:
           f"(shared edge), {stats['unexplained']} unexplained)")
 
 
+# ------------------------------------------------------------------------------- renderer
+R_KINDS = ("material", "light", "environment", "grazing")
+#: Hostile magnitudes: zero, a float32 denormal, tiny, one, huge.
+HOSTILE = (0.0, 1e-40, 1e-6, 1.0, 1e6)
+R_COLUMNS = [
+    ("scenes", "scenes"), ("covered", "covered px"), ("nonfinite_image", "NaN/Inf image"),
+    ("nonfinite_alpha", "NaN/Inf alpha"), ("nonfinite_gbuffer", "NaN/Inf G-buffer"),
+    ("nonfinite_grad_positions", "NaN/Inf grad positions"),
+    ("nonfinite_grad_material", "NaN/Inf grad material"),
+    ("nonfinite_grad_lights", "NaN/Inf grad lights"),
+    ("nonfinite_grad_environment", "NaN/Inf grad environment"),
+    ("grad_values", "gradient values checked"),
+    ("rejected", "rejected (ValueError/TypeError)"), ("exceptions", "exceptions"),
+]
+R_PROBLEMS = {key for key, _ in R_COLUMNS} - {"scenes", "covered", "grad_values", "rejected"}
+
+
+def _pick(gen: torch.Generator, options: tuple | list):
+    return options[_randint(gen, 0, len(options) - 1)]
+
+
+def _chance(gen: torch.Generator, p: float) -> bool:
+    return torch.rand(1, generator=gen).item() < p
+
+
+def _hostile(gen: torch.Generator, shape: tuple[int, ...], hi: float | None = None,
+             dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """A tensor of hostile magnitudes (each entry drawn from HOSTILE, capped at ``hi``)."""
+    values = torch.tensor([v for v in HOSTILE if hi is None or v <= hi], dtype=torch.float64)
+    idx = torch.randint(0, len(values), shape, generator=gen)
+    return values[idx].to(dtype)
+
+
+def _stage(gen: torch.Generator, dtype: torch.dtype):
+    """Ground plane (4x4 quads, y = 0, material 0), a unit-diameter icosphere resting on it
+    (material 1) and one zero-area triangle; positions, faces, uvs, face_material."""
+    n = 4
+    t = torch.linspace(-2.0, 2.0, n + 1, dtype=torch.float64)
+    z, x = torch.meshgrid(t, t, indexing="ij")
+    plane = torch.stack([x, torch.zeros_like(x), z], -1).view(-1, 3)
+    i = torch.arange(n)
+    c = (i[:, None] * (n + 1) + i[None, :]).reshape(-1)
+    quads = torch.stack([c, c + n + 1, c + n + 2, c + 1], -1)  # counter-clockwise seen from +y
+    plane_faces = torch.cat([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+    sphere = trimesh.creation.icosphere(subdivisions=_randint(gen, 1, 2), radius=0.5)
+    sv = torch.as_tensor(sphere.vertices, dtype=torch.float64) + torch.tensor([0.0, 0.5, 0.0])
+    sf = torch.as_tensor(sphere.faces, dtype=torch.int64) + len(plane)
+    degenerate = torch.tensor([[0, 1, 1]]) if _chance(gen, 0.5) else torch.zeros(0, 3).long()
+    positions = torch.cat([plane, sv]).to(dtype)
+    faces = torch.cat([plane_faces, sf, degenerate])
+    uvs = (positions[:, [0, 2]] / 4 + 0.5).contiguous()
+    face_material = torch.cat([torch.zeros(len(plane_faces), dtype=torch.long),
+                               torch.ones(len(sf), dtype=torch.long),
+                               torch.zeros(len(degenerate), dtype=torch.long)])
+    return positions, faces, uvs, face_material
+
+
+def _material(gen: torch.Generator, hostile: bool, params: list[torch.Tensor]) -> tr.Material:
+    """A material; hostile: factors and float textures from HOSTILE (within their ranges)."""
+    if not hostile:
+        return tr.Material(base_color_factor=torch.tensor([0.8, 0.6, 0.4, 1.0]),
+                           metallic_factor=0.0, roughness_factor=0.5)
+    base = torch.cat([_hostile(gen, (3,), 1.0), torch.ones(1)]).requires_grad_(True)
+    metallic = torch.tensor(_pick(gen, (0.0, 1e-40, 0.5, 1.0))).requires_grad_(True)
+    rough = torch.tensor(_pick(gen, (0.0, 0.0, 1e-40, 1e-6, 0.5, 1.0))).requires_grad_(True)
+    emissive = _hostile(gen, (3,)).requires_grad_(True)
+    params += [base, metallic, rough, emissive]
+    tex: dict[str, torch.Tensor] = {}
+    for slot in ("base_color_texture", "metallic_roughness_texture", "occlusion_texture",
+                 "emissive_texture"):
+        if _chance(gen, 0.3):
+            size = _pick(gen, (1, 2, 4, 8))
+            tex[slot] = _hostile(gen, (3, size, size), 1.0).requires_grad_(True)
+    if _chance(gen, 0.3):  # tangent-space normals: inward, zero-length (0.5 texels), random
+        size = _pick(gen, (1, 2, 4))
+        nt = _pick(gen, (torch.tensor([0.5, 0.5, 0.0]), torch.tensor([0.5, 0.5, 0.5]),
+                         torch.rand(3, generator=gen)))
+        tex["normal_texture"] = nt.view(3, 1, 1).expand(3, size, size).clone().requires_grad_()
+    params += list(tex.values())
+    return tr.Material(base_color_factor=base, metallic_factor=metallic, roughness_factor=rough,
+                       emissive_factor=emissive, double_sided=_chance(gen, 0.5), **tex)
+
+
+def _lights(gen: torch.Generator, hostile: bool, positions: torch.Tensor,
+            params: list[torch.Tensor]) -> tr.Lights:
+    """Sun + ambient (benign) or hostile directional, point, spot and ambient lights."""
+    dtype = positions.dtype
+    if not hostile:
+        d = torch.tensor([[[-0.3, -1.0, -0.2]]], dtype=dtype)
+        return tr.Lights(ambient=tr.sh_from_color(torch.full((1, 3), 0.1, dtype=dtype)),
+                         directional=tr.DirectionalLights(d, torch.ones(1, 1, 3, dtype=dtype),
+                                                          torch.full((1, 1), 3.0, dtype=dtype)))
+
+    def leaf(t: torch.Tensor) -> torch.Tensor:
+        t = t.to(dtype).requires_grad_(True)
+        params.append(t)
+        return t
+
+    def directions(n: int) -> torch.Tensor:
+        options = [torch.tensor([1.0, 0.0, 0.0]), torch.tensor([0.0, -1.0, 0.0]),
+                   torch.tensor([0.0, 1.0, 0.0]), torch.tensor([0.3, -1e-7, 0.9])]
+        out = []
+        for _ in range(n):
+            d = _pick(gen, options) if _chance(gen, 0.7) else torch.randn(3, generator=gen)
+            out.append(d * _pick(gen, (1.0, 1e-15, 1e6)))  # any non-zero length
+        return torch.stack(out)[None]
+
+    def places(n: int) -> torch.Tensor:
+        out = []
+        for _ in range(n):
+            kind = _randint(gen, 0, 3)
+            if kind == 0:  # exactly on a vertex
+                out.append(positions[_randint(gen, 0, len(positions) - 1)].detach().double())
+            elif kind == 1:  # inside the sphere
+                out.append(torch.tensor([0.0, 0.5, 0.0], dtype=torch.float64))
+            elif kind == 2:  # 1e-20 off a vertex
+                out.append(positions[0].detach().double() + 1e-20)
+            else:
+                out.append(torch.randn(3, generator=gen, dtype=torch.float64)
+                           * _pick(gen, (1.0, 1e6)))
+        return torch.stack(out)[None]
+
+    ambient = directional = point = spot = None
+    if _chance(gen, 0.6):
+        ambient = tr.sh_from_color(leaf(_hostile(gen, (1, 3))))
+    if _chance(gen, 0.7):
+        n = _randint(gen, 1, 3)
+        directional = tr.DirectionalLights(leaf(directions(n)), leaf(_hostile(gen, (1, n, 3))),
+                                           leaf(_hostile(gen, (1, n))))
+    if _chance(gen, 0.7):
+        n = _randint(gen, 1, 3)
+        point = tr.PointLights(leaf(places(n)), leaf(_hostile(gen, (1, n, 3))),
+                               leaf(_hostile(gen, (1, n))),
+                               range=torch.tensor([[_pick(gen, (math.inf, 1e-6, 1.0, 1e6))
+                                                    for _ in range(n)]], dtype=dtype))
+    if _chance(gen, 0.7):
+        n = _randint(gen, 1, 3)
+        cones = [_pick(gen, ((0.0, 0.0), (0.0, 1e-7), (math.pi / 2, math.pi / 2),
+                             (0.0, math.pi / 2), (0.3, 0.3))) for _ in range(n)]
+        spot = tr.SpotLights(leaf(places(n)), leaf(directions(n)), leaf(_hostile(gen, (1, n, 3))),
+                             leaf(_hostile(gen, (1, n))),
+                             range=torch.tensor([[_pick(gen, (math.inf, 1e-6, 1.0))
+                                                  for _ in range(n)]], dtype=dtype),
+                             inner_cone_angle=torch.tensor([[c[0] for c in cones]], dtype=dtype),
+                             outer_cone_angle=torch.tensor([[c[1] for c in cones]], dtype=dtype))
+    return tr.Lights(ambient=ambient, directional=directional, point=point, spot=spot)
+
+
+def _environment(gen: torch.Generator, dtype: torch.dtype, params: list[torch.Tensor]):
+    """A hostile lat-long map: 1-32 rows of zeros, denormals, one 1e6 texel or a mix."""
+    he = _pick(gen, (1, 2, 8, 32))
+    fill = _randint(gen, 0, 3)
+    if fill == 0:
+        rad = torch.zeros(3, he, 2 * he)
+    elif fill == 1:
+        rad = torch.full((3, he, 2 * he), 1e-40)
+    elif fill == 2:
+        rad = torch.zeros(3, he, 2 * he)
+        rad[:, _randint(gen, 0, he - 1), _randint(gen, 0, 2 * he - 1)] = 1e6
+    else:
+        rad = _hostile(gen, (3, he, 2 * he))
+    rad = rad.to(dtype).requires_grad_(True)
+    params.append(rad)
+    return tr.Environment(rad, intensity=_pick(gen, (0.0, 1e-40, 1.0, 1e6)),
+                          yaw=_rand(gen, -4.0, 4.0), diffuse=_pick(gen, ("map", "sh")),
+                          specular_size=_pick(gen, (4, 16)), specular_levels=_randint(gen, 2, 5),
+                          specular_samples=_pick(gen, (1, 8)))
+
+
+def _nonfinite(t: torch.Tensor | None) -> int:
+    if t is None or not t.is_floating_point():
+        return 0
+    return int((~torch.isfinite(t)).sum())
+
+
+def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
+    """One hostile render forward and backward (see the module docstring for the kinds)."""
+    wild = kind == "grazing"
+    dtype = torch.float64 if wild and _chance(gen, 0.25) else torch.float32
+    positions, faces, uvs, face_material = _stage(gen, dtype)
+    positions = positions.requires_grad_(True)
+    groups: dict[str, list[torch.Tensor]] = {"material": [], "lights": [], "environment": []}
+    hostile_mat = kind == "material" or (wild and _chance(gen, 0.7))
+    materials = [_material(gen, hostile_mat, groups["material"]) for _ in range(2)]
+    hostile_light = kind == "light" or (wild and _chance(gen, 0.7))
+    lights = _lights(gen, hostile_light, positions, groups["lights"])
+    env = None
+    if kind == "environment" or (wild and _chance(gen, 0.5)):
+        env = _environment(gen, dtype, groups["environment"])
+    tangents = None
+    if any(m.normal_texture is not None for m in materials):
+        tangents = vertex_tangents(positions, uvs, vertex_normals(positions, faces), faces)
+    scene = tr.RenderScene(positions, faces, uvs=uvs, tangents=tangents,
+                           face_material=face_material, materials=materials)
+    b = _randint(gen, 1, 2)
+    if wild:
+        elevation = torch.tensor([_pick(gen, (0.0, 1e-4, -20.0, 30.0)) for _ in range(b)])
+    else:
+        elevation = torch.tensor([_rand(gen, -10.0, 60.0) for _ in range(b)])
+    view = tr.camera.orbit(torch.tensor([_rand(gen, 0.0, 360.0) for _ in range(b)]), elevation,
+                           torch.tensor([_rand(gen, 1.5, 6.0) for _ in range(b)]),
+                           torch.tensor([0.0, 0.3, 0.0])).to(dtype)
+    res = (_randint(gen, 8, 40), _randint(gen, 8, 40))
+    proj = tr.camera.perspective(_rand(gen, 20.0, 90.0), res[1] / res[0], 0.01).to(dtype)
+    ssao = tr.post.SSAO() if wild and _chance(gen, 0.2) else None
+    renderer = tr.Renderer(
+        res, shading="pbr" if not wild or _chance(gen, 0.8) else _pick(gen, ("headlight", "unlit")),
+        supersample=_pick(gen, (1, 2)) if wild else 1, cull_backfaces=_chance(gen, 0.3),
+        texture_filter=_pick(gen, ("trilinear", "bilinear", "nearest")), ssao=ssao,
+        environment_background=_chance(gen, 0.5))
+    out = renderer(scene, view, proj, lights, env, channels=tr.CHANNELS)
+    c["covered"] += int((out.alpha > 0).sum())
+    c["nonfinite_image"] += _nonfinite(out.image)
+    c["nonfinite_alpha"] += _nonfinite(out.alpha)
+    c["nonfinite_gbuffer"] += sum(_nonfinite(v) for v in out.gbuffer.values())
+    loss = (out.image * torch.randn(out.image.shape, generator=gen, dtype=dtype)).sum()
+    for v in out.gbuffer.values():
+        if v.is_floating_point() and v.requires_grad:
+            loss = loss + (v * torch.randn(v.shape, generator=gen, dtype=v.dtype)).sum()
+    leaves = [positions] + [t for ts in groups.values() for t in ts]
+    grads = torch.autograd.grad(loss, leaves, allow_unused=True) if loss.requires_grad else (
+        [None] * len(leaves))
+    c["grad_values"] += sum(g.numel() for g in grads if g is not None)
+    c["nonfinite_grad_positions"] += _nonfinite(grads[0])
+    k = 1
+    for name, ts in groups.items():
+        c[f"nonfinite_grad_{name}"] += sum(_nonfinite(g) for g in grads[k:k + len(ts)])
+        k += len(ts)
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--n", type=int, default=5000, help="number of random scenes")
+    parser.add_argument("--part", choices=("all", "raster", "renderer"), default="all")
+    parser.add_argument("--n", type=int, default=5000, help="number of random raster scenes")
+    parser.add_argument("--n-renderer", type=int, default=1000,
+                        help="number of random renderer scenes")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-picture", action="store_true")
     args = parser.parse_args()
+    bad = 0
+    if args.part in ("all", "raster"):
+        bad += raster_part(args)
+    if args.part in ("all", "renderer"):
+        bad += renderer_part(args)
+    return 1 if bad else 0
+
+
+def counts_table(counts: dict[str, Counter], columns: list[tuple[str, str]],
+                 problems: set[str]) -> tuple[str, int]:
+    """Markdown table of the counts (a row per kind and a total) and the total problems."""
+    rows = [[k] + [c[key] for key, _ in columns] for k, c in counts.items()]
+    rows.append(["total"] + [sum(c[key] for c in counts.values()) for key, _ in columns])
+    table = markdown_table(["kind"] + [label for _, label in columns], rows)
+    return table, sum(rows[-1][1 + i] for i, (key, _) in enumerate(columns) if key in problems)
+
+
+def raster_part(args: argparse.Namespace) -> int:
     torch.manual_seed(args.seed)
-    counts, seconds = run(args.n, args.seed)
-    rows = [[k] + [counts[k][key] for key, _ in COLUMNS] for k in KINDS]
-    rows.append(["total"] + [sum(counts[k][key] for k in KINDS) for key, _ in COLUMNS])
-    table = markdown_table(["kind"] + [label for _, label in COLUMNS], rows)
-    bad = sum(rows[-1][1 + i] for i, (key, _) in enumerate(COLUMNS) if key in PROBLEMS)
+    counts, seconds = run_scenes(args.n, args.seed, KINDS, raster_scene)
+    table, bad = counts_table(counts, COLUMNS, PROBLEMS)
     body = (f"### Stress: {args.n} random hostile scenes (seed {args.seed}, "
             f"{seconds:.0f} s)\n\nCounts of problems found (all should be 0); "
             f"kinds are described in `scripts/stress.py`.\n\n{table}\n\n"
@@ -324,7 +609,23 @@ def main() -> int:
     update_section("stress", body)
     if not args.no_picture:
         picture(ROOT / "docs" / "images" / "raster_ref_diff.png")
-    return 1 if bad else 0
+    return bad
+
+
+def renderer_part(args: argparse.Namespace) -> int:
+    counts, seconds = run_scenes(args.n_renderer, args.seed, R_KINDS, scene_renderer,
+                                 (ValueError, TypeError), "renderer scenes", 50)
+    table, bad = counts_table(counts, R_COLUMNS, R_PROBLEMS)
+    body = (f"### Stress: {args.n_renderer} random hostile renderer scenes (seed {args.seed}, "
+            f"{seconds:.0f} s)\n\nMaterials, lights and environments with hostile values "
+            "(0, denormals, 1e6, grazing angles, roughness 0), rendered forward and backward "
+            "through `tr.Renderer`; kinds are described in `scripts/stress.py`. Problem counts "
+            "(all should be 0) are NaN/Inf values in the outputs and gradients and exceptions "
+            "other than a `ValueError`/`TypeError` rejecting an input (counted apart under "
+            f"\"rejected\").\n\n{table}\n\nTotal problems: **{bad}**.")
+    print(body)
+    update_section("stress-renderer", body)
+    return bad
 
 
 def picture_only() -> None:

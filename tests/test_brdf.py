@@ -17,6 +17,8 @@ from torchraster.shading.brdf import (
     safe_normalize,
     v_smith_ggx_correlated,
 )
+from torchraster.testing import reference_brdf
+from torchraster.testing.reference_brdf import heitz_v, walter_ggx
 
 F64 = torch.float64
 
@@ -25,23 +27,6 @@ def graded_cos_grid(n: int = 4001) -> torch.Tensor:
     """cos(theta) in [0, 1], points clustered geometrically towards the pole (cos = 1)."""
     s = torch.logspace(-14, 0, n, dtype=F64)  # 1 - cos(theta)
     return torch.cat([torch.ones(1, dtype=F64), 1.0 - s, torch.zeros(1, dtype=F64)]).unique()
-
-
-def walter_ggx(mu: torch.Tensor, alpha: float) -> torch.Tensor:
-    """Walter et al. 2007 form: a^2 / (pi cos^4 (a^2 + tan^2)^2), for 0 < mu <= 1."""
-    a2 = alpha * alpha
-    tan2 = (1 - mu * mu) / (mu * mu)
-    return a2 / (math.pi * mu**4 * (a2 + tan2) ** 2)
-
-
-def heitz_v(nv: torch.Tensor, nl: torch.Tensor, alpha: float) -> torch.Tensor:
-    """Height-correlated Smith G2 = 1 / (1 + Lambda(v) + Lambda(l)) (Heitz 2014), / (4 nv nl)."""
-
-    def lam(mu):
-        tan2 = (1 - mu * mu) / (mu * mu)
-        return 0.5 * (-1 + torch.sqrt(1 + alpha * alpha * tan2))
-
-    return 1.0 / (1.0 + lam(nv) + lam(nl)) / (4 * nv * nl)
 
 
 @pytest.mark.parametrize("roughness", [MIN_ROUGHNESS, 0.1, 0.3, 0.6, 1.0])
@@ -116,23 +101,10 @@ def directional_albedo(
     theta_v: float, roughness: float, metallic: float, albedo: float,
     n_theta: int = 600, n_phi: int = 96,
 ) -> float:
-    """Integral of BRDF * cos over the hemisphere of l, by quadrature over the half vector.
-
-    l = reflect(v, h), dw_l = 4 (v.h) dw_h; theta_h graded towards the pole (GGX peak).
-    """
-    s = torch.linspace(0, 1, n_theta, dtype=F64)
-    th = 0.5 * math.pi * s**3  # graded grid: dense near the pole
-    ph = torch.linspace(0, 2 * math.pi, n_phi + 1, dtype=F64)[:-1]
-    T, P = torch.meshgrid(th, ph, indexing="ij")
-    h = torch.stack([T.sin() * P.cos(), T.sin() * P.sin(), T.cos()])  # (3, nt, np)
-    v = torch.tensor([math.sin(theta_v), 0.0, math.cos(theta_v)], dtype=F64).view(3, 1, 1)
-    vh = (v * h).sum(0, keepdim=True)
-    l = 2 * vh * h - v
-    n = torch.tensor([0.0, 0.0, 1.0], dtype=F64).view(3, 1, 1)
-    f = cook_torrance(n[None], v[None], l[None], albedo, metallic, roughness)[0, 0]
-    f = torch.where((vh[0] > 0) & (l[2] > 0), f * 4 * vh[0], torch.zeros_like(f))
-    inner = f.mean(dim=1) * 2 * math.pi  # uniform in phi
-    return torch.trapezoid(inner * th.sin(), th).item()
+    """Directional albedo of the engine's Cook-Torrance BRDF by the reference quadrature."""
+    return reference_brdf.directional_albedo(
+        lambda n, v, l: cook_torrance(n, v, l, albedo, metallic, roughness),
+        theta_v, n_theta, n_phi)
 
 
 def test_lambert_directional_albedo_is_albedo() -> None:

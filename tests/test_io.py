@@ -250,7 +250,7 @@ def test_scene_flatten_rewinds_mirrored_instances() -> None:
     assert len(mats) == 1 and isinstance(mats[0], Material)  # default material for None
     assert face_mat.tolist() == [0, 0] and flat.material is mats[0]
     # front faces stay counter-clockwise: geometric normals agree with shading normals
-    fn = face_normals(flat.positions, flat.faces)[0]
+    fn = face_normals(flat.positions, flat.faces)
     torch.testing.assert_close(fn, flat.normals[flat.faces[:, 0]])
     torch.testing.assert_close(scene.bounds(), torch.tensor([[-1.0, 0, 0], [6, 1, 0]]))
     with pytest.raises(ValueError, match="transforms"):
@@ -398,7 +398,7 @@ def test_gltf_exact_factors_scale_strength_and_mirror_node(tmp_path: Path) -> No
     # the mirror node: world x negated, faces re-wound so the front stays counter-clockwise
     mesh = load_mesh(path)
     torch.testing.assert_close(mesh.positions[:, 0], -scene.meshes[0].positions[:, 0])
-    fn = face_normals(mesh.positions, mesh.faces)[0]
+    fn = face_normals(mesh.positions, mesh.faces)
     torch.testing.assert_close(fn, mesh.normals[mesh.faces[:, 0]])
     assert mesh.tangents[:, 3].tolist() == (-scene.meshes[0].tangents[:, 3]).tolist()
 

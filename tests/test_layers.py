@@ -2,6 +2,8 @@
 the layers below, and only the config layer imports pydantic / yaml."""
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "torchraster"
@@ -86,3 +88,26 @@ def test_no_private_names_cross_modules():
                         problems.append(f"{path.relative_to(PACKAGE.parent)}:{node.lineno}: "
                                         f"imports private {a.name}")
     assert not problems, "\n".join(problems)
+
+
+def test_testing_references_share_no_code_with_the_engine():
+    """torchraster/testing holds independent references: it imports no other torchraster
+    module (docs/design.md, layer 3), so a test against it compares two implementations."""
+    problems = []
+    for path in sorted((PACKAGE / "testing").rglob("*.py")):
+        for name, line in _imports(path):
+            if not name.startswith("ext:") and name != "testing":
+                problems.append(f"{path.relative_to(PACKAGE.parent)}:{line}: imports "
+                                f"torchraster.{name}")
+    assert not problems, "\n".join(problems)
+
+
+def test_import_torchraster_does_not_import_kornia():
+    """kornia costs ~0.2 s on top of torch at import; only the functions that use it import
+    it (post-processing's sRGB encode, OpenCV extrinsics, Gaussian mip pyramids)."""
+    code = ("import sys, torchraster; assert 'kornia' not in sys.modules, "
+            "sorted(m for m in sys.modules if m.startswith('kornia'))[:3]; "
+            "torchraster.post.encode_srgb(torchraster.post.tone_curve(__import__('torch')"
+            ".ones(1, 3, 1, 1), 'aces')); assert 'kornia' in sys.modules")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr

@@ -1,19 +1,17 @@
-"""Mesa llvmpipe baseline (scripts/llvmpipe.py): checked against a brute-force numpy reference,
-then cross-checked against torchraster.rasterize / interpolate on a real mesh.
+"""Mesa llvmpipe baseline (torchraster/testing/llvmpipe.py): checked against a brute-force
+numpy reference, then cross-checked against torchraster.rasterize / interpolate on a real mesh.
 
 Skipped cleanly when moderngl or an EGL llvmpipe context is not available.
 """
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
-import llvmpipe  # noqa: E402
+from torchraster.testing import llvmpipe
 
 pytestmark = pytest.mark.skipif(
     not llvmpipe.available(), reason=f"llvmpipe unavailable: {llvmpipe.unavailable_reason()}"
@@ -207,7 +205,7 @@ def test_bad_input_raises_clear_errors() -> None:
 
 # -- cross-check against torchraster ---------------------------------------------------------
 
-SPOT = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes" / "spot"
+SPOT = Path(__file__).resolve().parents[1] / "torchraster" / "assets" / "spot"
 
 
 def test_crosscheck_torchraster_on_spot() -> None:

@@ -75,7 +75,7 @@ def test_mesh_validation_errors() -> None:
 
 def test_mesh_to_dtype() -> None:
     pos, faces = grid_plane(3, torch.float32)
-    m = Mesh(pos, faces, normals=vertex_normals(pos, faces)[0], uvs=pos[:, :2],
+    m = Mesh(pos, faces, normals=vertex_normals(pos, faces), uvs=pos[:, :2],
              material=Material(base_color_texture=torch.zeros(3, 2, 2, dtype=torch.uint8)))
     m64 = m.to(dtype=torch.float64)
     assert m64.positions.dtype == m64.normals.dtype == m64.uvs.dtype == torch.float64
@@ -91,11 +91,11 @@ def test_face_normals_ccw_and_batched() -> None:
     pos = torch.tensor([[0.0, 0, 0], [2, 0, 0], [0, 3, 0], [0, 0, 5]])
     faces = torch.tensor([[0, 1, 2], [0, 2, 1], [0, 3, 1]])
     n = face_normals(pos, faces)
-    assert n.shape == (1, 3, 3)
-    torch.testing.assert_close(n[0], torch.tensor([[0.0, 0, 1], [0, 0, -1], [0, 1, 0]]))
+    assert n.shape == (3, 3)
+    torch.testing.assert_close(n, torch.tensor([[0.0, 0, 1], [0, 0, -1], [0, 1, 0]]))
     nb = face_normals(torch.stack([pos, -pos]), faces)
     assert nb.shape == (2, 3, 3)
-    torch.testing.assert_close(nb[1], n[0])  # point reflection keeps cross products
+    torch.testing.assert_close(nb[1], n)  # point reflection keeps cross products
 
 
 def test_smooth_normals_of_icosphere_are_radial() -> None:
@@ -105,7 +105,7 @@ def test_smooth_normals_of_icosphere_are_radial() -> None:
     errors = {}
     for sub in (3, 4, 7):
         pos, faces = icosphere(sub, torch.float32)
-        n = vertex_normals(pos, faces)[0]
+        n = vertex_normals(pos, faces)
         radial = pos / pos.norm(dim=-1, keepdim=True)
         errors[sub] = float((n - radial).norm(dim=-1).max())
         torch.testing.assert_close(n.norm(dim=-1), torch.ones(len(pos)))
@@ -129,7 +129,7 @@ def test_vertex_normals_match_brute_force_area_weighting() -> None:
     lens = np.linalg.norm(ref, axis=1, keepdims=True)
     used = lens[:, 0] > 0
     ref[used] /= lens[used]
-    got = vertex_normals(pos, faces)[0].numpy()
+    got = vertex_normals(pos, faces).numpy()
     np.testing.assert_allclose(got, ref, atol=1e-12)
 
 
@@ -152,8 +152,8 @@ def test_degenerate_faces_give_zero_normals_and_finite_grads(dtype: torch.dtype)
     vn = vertex_normals(pos, faces)
     fn = face_normals(pos, faces)
     assert torch.isfinite(vn).all() and torch.isfinite(fn).all()
-    assert torch.equal(fn[0, 1:], torch.zeros(3, 3, dtype=dtype))
-    assert torch.equal(vn[0, 6], torch.zeros(3, dtype=dtype))
+    assert torch.equal(fn[1:], torch.zeros(3, 3, dtype=dtype))
+    assert torch.equal(vn[6], torch.zeros(3, dtype=dtype))
     (vn.sum() + fn.sum() + (vn * torch.randn_like(vn)).sum()).backward()
     assert torch.isfinite(pos.grad).all()
 
@@ -163,20 +163,20 @@ def test_small_but_valid_faces_keep_their_normal() -> None:
     s = 1e-6
     pos = torch.tensor([[0, 0, 0], [s, 0, 0], [0, s, 0]], dtype=torch.float32)
     assert s**4 > NORMAL_EPS
-    torch.testing.assert_close(face_normals(pos, torch.tensor([[0, 1, 2]]))[0, 0],
+    torch.testing.assert_close(face_normals(pos, torch.tensor([[0, 1, 2]]))[0],
                                torch.tensor([0.0, 0, 1]))
 
 
 def test_flat_unwelds_with_face_normals() -> None:
     pos, faces = icosphere(1, torch.float32)
-    m = Mesh(pos, faces, normals=vertex_normals(pos, faces)[0], uvs=pos[:, :2].contiguous())
+    m = Mesh(pos, faces, normals=vertex_normals(pos, faces), uvs=pos[:, :2].contiguous())
     fm = flat(m)
     assert fm.num_vertices == 3 * m.num_faces and fm.num_faces == m.num_faces
     torch.testing.assert_close(fm.positions[fm.faces], pos[faces])
     torch.testing.assert_close(fm.uvs[fm.faces], m.uvs[faces])
-    fn = face_normals(pos, faces)[0]
+    fn = face_normals(pos, faces)
     torch.testing.assert_close(fm.normals[fm.faces[:, 1]], fn)
-    torch.testing.assert_close(face_normals(fm.positions, fm.faces)[0], fn)
+    torch.testing.assert_close(face_normals(fm.positions, fm.faces), fn)
 
 
 # ------------------------------------------------------------------------------ tangents
@@ -198,7 +198,7 @@ def test_tangents_on_uv_mapped_plane_are_analytic(seed: int) -> None:
     r = _rotation(seed)
     pos3 = pos @ r.T
     normal = r[:, 2].expand(len(pos), 3)
-    t = vertex_tangents(pos3, uvs, normal, faces)[0]
+    t = vertex_tangents(pos3, uvs, normal, faces)
     ainv = torch.linalg.inv(a)
     t_ref = torch.cat([ainv[:, 0], torch.zeros(1, dtype=torch.float64)]) @ r.T
     t_ref = t_ref / t_ref.norm()
@@ -214,21 +214,21 @@ def test_tangents_on_uv_mapped_plane_are_analytic(seed: int) -> None:
 def test_tangents_axis_aligned_plane() -> None:
     pos, faces = grid_plane(3)
     nrm = torch.tensor([0.0, 0, 1], dtype=torch.float64).expand(len(pos), 3)
-    t = vertex_tangents(pos, pos[:, :2], nrm, faces)[0]
+    t = vertex_tangents(pos, pos[:, :2], nrm, faces)
     torch.testing.assert_close(t, torch.tensor([1.0, 0, 0, 1], dtype=torch.float64)
                                .expand_as(t))
     mirrored = pos[:, :2] * torch.tensor([-1.0, 1.0], dtype=torch.float64)
-    t = vertex_tangents(pos, mirrored, nrm, faces)[0]
+    t = vertex_tangents(pos, mirrored, nrm, faces)
     torch.testing.assert_close(t, torch.tensor([-1.0, 0, 0, -1], dtype=torch.float64)
                                .expand_as(t))
 
 
 def test_tangents_with_degenerate_uvs_are_finite_unit_and_perpendicular() -> None:
     pos, faces = icosphere(1)
-    nrm = vertex_normals(pos, faces)[0]
+    nrm = vertex_normals(pos, faces)
     uvs = torch.zeros(len(pos), 2, dtype=torch.float64, requires_grad=True)
     p = pos.clone().requires_grad_(True)
-    t = vertex_tangents(p, uvs, nrm, faces)[0]
+    t = vertex_tangents(p, uvs, nrm, faces)
     assert torch.isfinite(t).all()
     torch.testing.assert_close(t[:, :3].norm(dim=-1), torch.ones(len(pos), dtype=torch.float64))
     assert (t[:, :3] * nrm).sum(-1).abs().max() < 1e-12
@@ -270,9 +270,9 @@ def test_transform_normals_match_transformed_geometry(mirror: bool) -> None:
         faces_t = faces[:, [0, 2, 1]]
     else:
         faces_t = faces
-    world = transform_points(pos, m)[0, :, :3]
-    ref = face_normals(world, faces_t)[0]
-    got = transform_normals(face_normals(pos, faces)[0], m)[0]
+    world = transform_points(pos, m)[:, :3]
+    ref = face_normals(world, faces_t)
+    got = transform_normals(face_normals(pos, faces), m)
     torch.testing.assert_close(got, ref, atol=1e-12, rtol=0)
 
 
@@ -289,24 +289,56 @@ def test_transform_normals_singular_matrix_is_finite() -> None:
 def test_transform_tangents_match_recomputed_frames(mirror: bool) -> None:
     pos, faces = grid_plane(4)
     uvs = pos[:, :2] @ torch.tensor([[1.0, 0.3], [-0.2, 0.8]], dtype=torch.float64).T
-    nrm = vertex_normals(pos, faces)[0]
-    tan = vertex_tangents(pos, uvs, nrm, faces)[0]
+    nrm = vertex_normals(pos, faces)
+    tan = vertex_tangents(pos, uvs, nrm, faces)
     m = torch.eye(4, dtype=torch.float64)
     m[:3, :3] = _rotation(7) @ torch.diag(torch.tensor([2.0, 0.5, 1.5], dtype=torch.float64))
     faces_t = faces
     if mirror:
         m[:3, :3] = m[:3, :3] @ torch.diag(torch.tensor([1.0, -1, 1], dtype=torch.float64))
         faces_t = faces[:, [0, 2, 1]]
-    world = transform_points(pos, m)[0, :, :3]
-    nrm_w = transform_normals(nrm, m)[0]
-    torch.testing.assert_close(nrm_w, vertex_normals(world, faces_t)[0])
-    ref = vertex_tangents(world, uvs, nrm_w, faces_t)[0]
-    got = transform_tangents(tan, m)[0]
+    world = transform_points(pos, m)[:, :3]
+    nrm_w = transform_normals(nrm, m)
+    torch.testing.assert_close(nrm_w, vertex_normals(world, faces_t))
+    ref = vertex_tangents(world, uvs, nrm_w, faces_t)
+    got = transform_tangents(tan, m)
     assert torch.equal(got[:, 3], ref[:, 3])
     # for non-uniform scale the transformed tangent is not orthogonalised: compare after
     # Gram-Schmidt against the transformed normal
     t = got[:, :3] - nrm_w * (nrm_w * got[:, :3]).sum(-1, keepdim=True)
     torch.testing.assert_close(t / t.norm(dim=-1, keepdim=True), ref[:, :3])
+
+
+# -------------------------------------------------------------------------------- shapes
+def test_outputs_keep_the_batching_of_the_inputs() -> None:
+    """Unbatched in, unbatched out: (V, 3) -> (V, 3), never a surprise (1, V, 3); any batched
+    input makes the result (B, ...), the others broadcasting. Values are the same either way."""
+    pos, faces = icosphere(0)
+    v, f = len(pos), len(faces)
+    uvs = pos[:, :2].contiguous()
+    nrm = vertex_normals(pos, faces)
+    tan = vertex_tangents(pos, uvs, nrm, faces)
+    m = torch.eye(4, dtype=torch.float64)
+    m[:3, 3] = 1.0
+    pos_b, uvs_b, nrm_b, tan_b, m_b = (t.expand(2, *t.shape) for t in (pos, uvs, nrm, tan, m))
+    cases = [  # (function, unbatched args, batched args (any one batched), per-item shape)
+        (face_normals, (pos, faces), [(pos_b, faces)], (f, 3)),
+        (vertex_normals, (pos, faces), [(pos_b, faces)], (v, 3)),
+        (vertex_tangents, (pos, uvs, nrm, faces),
+         [(pos_b, uvs, nrm, faces), (pos, uvs_b, nrm, faces), (pos, uvs, nrm_b, faces)], (v, 4)),
+        (transform_points, (pos, m), [(pos_b, m), (pos, m_b)], (v, 4)),
+        (transform_normals, (nrm, m), [(nrm_b, m), (nrm, m_b)], (v, 3)),
+        (transform_tangents, (tan, m), [(tan_b, m), (tan, m_b)], (v, 4)),
+    ]
+    for fn, args, batched_args, shape in cases:
+        single = fn(*args)
+        assert single.shape == shape, (fn.__name__, single.shape)
+        for bargs in batched_args:
+            out = fn(*bargs)
+            assert out.shape == (2, *shape), (fn.__name__, out.shape)
+            torch.testing.assert_close(out[1], single)
+    assert flat(Mesh(pos.float(), faces, uvs=uvs.float(), tangents=tan.float())).normals.shape \
+        == (3 * f, 3)
 
 
 # ------------------------------------------------------------------------------- packing

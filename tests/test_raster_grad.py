@@ -5,15 +5,15 @@ from __future__ import annotations
 
 import pytest
 import torch
-from reference_raster import (
+
+import torchraster as tr
+from torchraster.testing.reference_raster import (
     boundary_distance_px,
     perspective_matrix,
     pixel_centres,
     random_soup,
     to_clip,
 )
-
-import torchraster as tr
 
 RES = (8, 8)
 MIN_EDGE_DIST_PX = 1e-3  # pixel centres this far from every boundary line: FD steps (1e-6)

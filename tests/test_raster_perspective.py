@@ -12,9 +12,9 @@ import math
 
 import pytest
 import torch
-from reference_raster import pixel_centres
 
 import torchraster as tr
+from torchraster.testing.reference_raster import pixel_centres
 
 UV_TOL = 1e-5
 

@@ -1,4 +1,4 @@
-"""tr.rasterize against the independent float64 reference (tests/reference_raster.py).
+"""tr.rasterize against the independent float64 reference (torchraster/testing/reference_raster.py).
 
 First the reference itself is checked on hand-computed cases and against a second, scalar
 clip-then-project implementation written here; then the engine is compared with it on hostile
@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import pytest
 import torch
-from reference_raster import (
+
+import torchraster as tr
+from torchraster.testing.reference_raster import (
     SOUP_KINDS,
     compare_fragments,
     error_ratios,
@@ -21,8 +23,6 @@ from reference_raster import (
     random_view_clip,
     reference_rasterize,
 )
-
-import torchraster as tr
 
 DEPTH_TOL = {torch.float32: 1e-6, torch.float64: 1e-10}
 BARY_TOL = {torch.float32: 1e-5, torch.float64: 1e-9}

@@ -12,7 +12,9 @@ from __future__ import annotations
 import pytest
 import torch
 import trimesh
-from reference_raster import (
+
+import torchraster as tr
+from torchraster.testing.reference_raster import (
     EDGE_TOL_PX,
     boundary_distance_px,
     load_mesh,
@@ -22,8 +24,6 @@ from reference_raster import (
     reference_pixels,
     to_clip,
 )
-
-import torchraster as tr
 
 
 def _ndc(i: torch.Tensor, j: torch.Tensor, h: int, w: int) -> tuple[torch.Tensor, torch.Tensor]:

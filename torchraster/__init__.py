@@ -5,7 +5,8 @@ The contract and the layers are described in ``docs/design.md``. In data-flow or
 * cameras: :mod:`torchraster.camera` (``look_at``, ``orbit``, ``perspective``, ...);
 * geometry and files: :class:`Mesh`, :func:`load_mesh`, :func:`load_scene`,
   :class:`RenderScene`, :class:`Material`, :func:`read_hdr`;
-* visibility: :func:`rasterize` -> :class:`Fragments`, :func:`interpolate`;
+* visibility: :func:`rasterize` -> :class:`Fragments`, :func:`interpolate`,
+  :func:`interpolate_with_derivatives`;
 * surfaces: :func:`geometry_pass` -> :class:`GBuffer`;
 * light: :class:`Lights` (:class:`DirectionalLights`, :class:`PointLights`,
   :class:`SpotLights`, ambient SH from :func:`sh_from_color`), :class:`Environment`,
@@ -23,7 +24,7 @@ from .io import MeshFileError, Scene, load_mesh, load_scene, load_spot
 from .material import Material
 from .mesh import Mesh, pack_meshes, vertex_normals
 from .pipeline import render_config, render_to_files
-from .raster import Fragments, interpolate, rasterize
+from .raster import Fragments, antialias, interpolate, interpolate_with_derivatives, rasterize
 from .renderer import NotImplementedWarning, Renderer, RenderOutput, RenderPlan
 from .scene import RenderScene
 from .shading.ibl import Environment
@@ -33,9 +34,10 @@ from .shading.lights import DirectionalLights, Lights, PointLights, SpotLights, 
 __all__ = [
     "CHANNELS", "ConfigError", "DirectionalLights", "Environment", "Fragments", "GBuffer",
     "Lights", "Material", "Mesh", "MeshFileError", "NotImplementedWarning", "PointLights",
-    "RenderOutput", "RenderPlan", "RenderScene", "Renderer", "Scene", "SpotLights", "camera",
-    "geometry_pass", "interpolate", "lights_from_config", "load_config", "load_mesh",
-    "load_scene", "load_spot", "pack_meshes", "parse_config", "post", "rasterize", "read_hdr",
-    "render_config", "render_to_files", "sh_from_color", "shade", "shading", "vertex_normals",
+    "RenderOutput", "RenderPlan", "RenderScene", "Renderer", "Scene", "SpotLights", "antialias",
+    "camera", "geometry_pass", "interpolate", "interpolate_with_derivatives", "lights_from_config",
+    "load_config", "load_mesh", "load_scene", "load_spot", "pack_meshes", "parse_config", "post",
+    "rasterize", "read_hdr", "render_config", "render_to_files", "sh_from_color", "shade",
+    "shading", "vertex_normals",
 ]
 __version__ = "0.1.0"

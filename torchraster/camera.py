@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import math
 
-import kornia
 import torch
 
 from ._validate import check_tensor
@@ -201,10 +200,13 @@ def view_from_opencv(rotation: torch.Tensor, translation: torch.Tensor) -> torch
     ``(B, 4, 4)``.
     """
     if rotation.dim() == 2 and rotation.shape[-1] == 3:
-        rotation = kornia.geometry.conversions.axis_angle_to_rotation_matrix(rotation)
+        from kornia.geometry.conversions import axis_angle_to_rotation_matrix  # lazy: ~0.2 s
+
+        rotation = axis_angle_to_rotation_matrix(rotation)
     elif rotation.dim() == 2 and rotation.shape[-1] == 4:
-        quat = kornia.geometry.quaternion.Quaternion(rotation)
-        rotation = quat.matrix()
+        from kornia.geometry.quaternion import Quaternion  # lazy: ~0.2 s
+
+        rotation = Quaternion(rotation).matrix()
     check_tensor("rotation", rotation, ("B", 3, 3), floating=True, finite=True)
     check_tensor("translation", translation, (rotation.shape[0], 3), floating=True, finite=True)
     view = torch.zeros(rotation.shape[0], 4, 4, dtype=rotation.dtype, device=rotation.device)

@@ -280,6 +280,20 @@ def _shadow_default(name: str) -> Any:
     return default_of(ShadowSettings, name)
 
 
+#: Shadow fields that only some filters read.
+_FILTER_USES = {
+    "hard": set(),
+    "pcf": {"pcf_radius", "pcf_taps", "pcf_pattern"},
+    "pcss": {"pcf_taps", "pcf_pattern", "light_size", "max_penumbra"},
+    "vsm": {"vsm_blur", "vsm_bleed", "vsm_min_variance"},
+}
+_FILTER_FIELDS = set().union(*_FILTER_USES.values())
+
+
+def _users_of(name: str) -> str:
+    return ", ".join(f for f, uses in _FILTER_USES.items() if name in uses)
+
+
 class ShadowConfig(_Strict):
     """Shadow maps of one light (``enabled: true`` is what ``cast_shadows: true`` means).
     Sizes and biases are in shadow-map texels; see docs/design.md, "Shadows"."""
@@ -314,6 +328,14 @@ class ShadowConfig(_Strict):
     vsm_blur: Annotated[float, Field(ge=0, le=64)] = _shadow_default("vsm_blur")
     vsm_bleed: Annotated[float, Field(ge=0, le=0.99)] = _shadow_default("vsm_bleed")
     vsm_min_variance: Annotated[float, Field(ge=0, le=1)] = _shadow_default("vsm_min_variance")
+
+    @model_validator(mode="after")
+    def _used_by_filter(self) -> ShadowConfig:
+        unused = sorted(self.model_fields_set & (_FILTER_FIELDS - _FILTER_USES[self.filter]))
+        if unused:
+            raise ValueError(f"{', '.join(unused)}: not used by filter {self.filter!r} (used "
+                             f"by: {_users_of(unused[0])}); remove it or change the filter")
+        return self
 
     def settings(self) -> ShadowSettings:
         """The :class:`~torchraster.shading.shadows.ShadowSettings` of this block."""
@@ -387,10 +409,10 @@ class PointLightConfig(_LightConfigBase):
 
     @model_validator(mode="after")
     def _shadow_switch(self) -> PointLightConfig:
-        if self.shadows is not None and (self.shadows.cascades != 1
-                                         or self.shadows.max_distance is not None):
-            raise ValueError("shadows.cascades / shadows.max_distance are for directional "
-                             "lights only")
+        cascade_keys = {"cascades", "max_distance", "split_lambda", "cascade_blend"}
+        if self.shadows is not None and self.shadows.model_fields_set & cascade_keys:
+            raise ValueError(f"shadows.{sorted(self.shadows.model_fields_set & cascade_keys)[0]}:"
+                             " cascades are for directional lights only")
         return _check_shadow_switch(self)
 
 
@@ -944,7 +966,8 @@ def lights_from_config(
     """
     if not isinstance(batch, int) or isinstance(batch, bool) or batch < 1:
         raise ValueError(f"batch: expected a positive int, got {batch!r}")
-    cfgs = parse_lights([c.model_dump() if isinstance(c, BaseModel) else c for c in configs])
+    cfgs = parse_lights([c.model_dump(exclude_unset=True) if isinstance(c, BaseModel) else c
+                        for c in configs])
 
     def tensor(rows: list, shape_tail: tuple[int, ...] = ()) -> torch.Tensor:
         t = torch.tensor(rows, device=device, dtype=dtype).reshape(1, len(rows), *shape_tail)

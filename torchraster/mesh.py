@@ -2,8 +2,10 @@
 
 Shapes: a single mesh stores ``positions (V, 3)`` and ``faces (F, 3)`` int64 (counter-clockwise
 = front facing). The geometry functions also take batches of vertex data ``(B, V, C)`` that
-share one ``faces`` array (e.g. one mesh under B deformations), and always return batched
-results ``(B, ...)``; an unbatched ``(V, C)`` input counts as B = 1.
+share one ``faces`` array (e.g. one mesh under B deformations), and matrices ``(4, 4)`` or
+``(B, 4, 4)``. The result keeps the batching of the input: unbatched in, unbatched out
+(``(V, 3) -> (V, 3)``); if any input is batched the result is ``(B, ...)``, inputs of batch
+size 1 (or unbatched) broadcasting against the others.
 
 Meshes with different topology are batched by packing (:func:`pack_meshes`): all vertices and
 faces concatenated, with per-item ``[start, end)`` ranges.
@@ -38,11 +40,18 @@ def _safe_normalize(v: torch.Tensor, eps: float = NORMAL_EPS) -> tuple[torch.Ten
     return torch.where(ok, v * inv, torch.zeros_like(v)), ok
 
 
-def _batched(name: str, x: object, channels: int) -> torch.Tensor:
-    """Check ``(B, V, C)`` or ``(V, C)`` float vertex data and return it as ``(B, V, C)``."""
-    if isinstance(x, torch.Tensor) and x.dim() == 2:
-        x = x.unsqueeze(0)
-    return check_tensor(name, x, ("B", "V", channels), floating=True)
+def _batched(name: str, x: object, channels: int) -> tuple[torch.Tensor, bool]:
+    """Check ``(B, V, C)`` or ``(V, C)`` float vertex data; return it as ``(B, V, C)`` and
+    whether it was batched."""
+    batched = not (isinstance(x, torch.Tensor) and x.dim() == 2)
+    if not batched:
+        x = x.unsqueeze(0)  # type: ignore[union-attr]
+    return check_tensor(name, x, ("B", "V", channels), floating=True), batched
+
+
+def _unbatch(out: torch.Tensor, *batched: bool) -> torch.Tensor:
+    """Drop the batch dim of ``out (1, ...)`` if no input was batched."""
+    return out if any(batched) else out[0]
 
 
 def _check_faces(faces: object, num_vertices: int | None, name: str = "faces") -> torch.Tensor:
@@ -163,15 +172,32 @@ class Mesh:
 
 # ------------------------------------------------------------------------ normals
 def face_normals(positions: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    """Unit face normals ``(B, F, 3)`` from ``positions (B, V, 3)`` or ``(V, 3)``.
+    """Unit face normals.
 
     Right-handed: counter-clockwise faces (p0, p1, p2) get ``normalize((p1-p0) x (p2-p0))``.
     Degenerate faces (squared cross-product length <= ``NORMAL_EPS``) get a zero normal with
-    finite (zero) gradients.
+    finite (zero) gradients. Differentiable with respect to ``positions``.
+
+    Args:
+        positions: float vertex positions, one mesh or a batch of deformations of it.
+        faces: int vertex indices, counter-clockwise = front.
+
+    Returns:
+        One unit normal per face, batched like ``positions``.
+
+    Shape:
+        - positions: :math:`(V, 3)` or :math:`(B, V, 3)`.
+        - faces: :math:`(F, 3)`.
+        - Output: :math:`(F, 3)` or :math:`(B, F, 3)`.
+
+    Example:
+        >>> pos = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+        >>> face_normals(pos, torch.tensor([[0, 1, 2]]))
+        tensor([[0., 0., 1.]])
     """
-    pos = _batched("positions", positions, 3)
+    pos, batched = _batched("positions", positions, 3)
     faces = _check_faces(faces, pos.shape[1])
-    return _safe_normalize(_face_cross(pos, faces))[0]
+    return _unbatch(_safe_normalize(_face_cross(pos, faces))[0], batched)
 
 
 def _face_cross(pos: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
@@ -181,36 +207,72 @@ def _face_cross(pos: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
 
 
 def vertex_normals(positions: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    """Smooth area-weighted unit vertex normals ``(B, V, 3)``.
+    """Smooth area-weighted unit vertex normals.
 
     Each vertex sums the unnormalised cross products (2 * area * normal) of its faces, then
     normalises. Differentiable; degenerate faces add nothing and vertices without a
     non-degenerate face get a zero normal, both with finite gradients.
-    ``positions``: ``(B, V, 3)`` or ``(V, 3)``; ``faces``: ``(F, 3)``.
+
+    Args:
+        positions: float vertex positions, one mesh or a batch of deformations of it.
+        faces: int vertex indices, counter-clockwise = front.
+
+    Returns:
+        One unit normal per vertex, batched like ``positions``.
+
+    Shape:
+        - positions: :math:`(V, 3)` or :math:`(B, V, 3)`.
+        - faces: :math:`(F, 3)`.
+        - Output: :math:`(V, 3)` or :math:`(B, V, 3)`, like ``positions``.
+
+    Example:
+        >>> pos = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+        >>> vertex_normals(pos, torch.tensor([[0, 1, 2]])).shape
+        torch.Size([3, 3])
     """
-    pos = _batched("positions", positions, 3)
+    pos, batched = _batched("positions", positions, 3)
     faces = _check_faces(faces, pos.shape[1])
     cross = _face_cross(pos, faces)
     acc = torch.zeros_like(pos)
     for k in range(3):
         acc = acc.index_add(1, faces[:, k], cross)
-    return _safe_normalize(acc)[0]
+    return _unbatch(_safe_normalize(acc)[0], batched)
 
 
 def flat(mesh: Mesh) -> Mesh:
-    """Unwelded copy of ``mesh`` for flat shading: every face gets its own 3 vertices
-    (``V' = 3F``), with the face normal as vertex normal. UVs are copied per corner;
-    tangents, if present, are recomputed per face with :func:`vertex_tangents`."""
+    """Unwelded copy of ``mesh`` for flat shading.
+
+    Every face gets its own 3 vertices, with the face normal as vertex normal. UVs are
+    copied per corner; tangents, if present, are recomputed per face with
+    :func:`vertex_tangents`.
+
+    Args:
+        mesh: the mesh to unweld.
+
+    Returns:
+        A :class:`Mesh` with ``V' = 3F`` vertices and the same faces in the same order
+        (face ``f`` uses vertices ``3f, 3f + 1, 3f + 2``).
+
+    Shape:
+        - mesh.positions: :math:`(V, 3)`, mesh.faces: :math:`(F, 3)`.
+        - Output positions and normals: :math:`(3F, 3)`; faces: :math:`(F, 3)`.
+
+    Example:
+        >>> m = Mesh(torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]]),
+        ...          torch.tensor([[0, 1, 2], [1, 3, 2]]))
+        >>> flat(m).positions.shape, flat(m).normals[0]
+        (torch.Size([6, 3]), tensor([0., 0., 1.]))
+    """
     if not isinstance(mesh, Mesh):
         raise TypeError(f"mesh: expected a Mesh, got {type(mesh).__name__}")
     f = mesh.faces
     pos = mesh.positions[f].reshape(-1, 3)
     new_faces = torch.arange(pos.shape[0], device=f.device).view(-1, 3)
-    normals = face_normals(mesh.positions, f)[0].repeat_interleave(3, dim=0)
+    normals = face_normals(mesh.positions, f).repeat_interleave(3, dim=0)
     uvs = None if mesh.uvs is None else mesh.uvs[f].reshape(-1, 2)
     tangents = None
     if mesh.tangents is not None and uvs is not None:
-        tangents = vertex_tangents(pos, uvs, normals, new_faces)[0]
+        tangents = vertex_tangents(pos, uvs, normals, new_faces)
     return replace(mesh, positions=pos, faces=new_faces, normals=normals, uvs=uvs,
                    tangents=tangents)
 
@@ -229,7 +291,7 @@ def _any_perpendicular(n: torch.Tensor) -> torch.Tensor:
 def vertex_tangents(
     positions: torch.Tensor, uvs: torch.Tensor, normals: torch.Tensor, faces: torch.Tensor
 ) -> torch.Tensor:
-    """Per-vertex tangent frames ``(B, V, 4)``: unit tangent xyz and handedness w = +-1.
+    """Per-vertex tangent frames: unit tangent xyz and handedness w = +-1.
 
     Per triangle, the UV gradient of position (Lengyel 2001, "Computing Tangent Space Basis
     Vectors for an Arbitrary Mesh") ``T = dP/du``, ``Bt = dP/dv`` solved from the edges, is
@@ -244,12 +306,31 @@ def vertex_tangents(
     gradient get an arbitrary tangent perpendicular to the normal. Differentiable (the sign is
     piecewise constant).
 
-    Args: positions ``(B, V, 3)`` or ``(V, 3)``; uvs ``(B, V, 2)`` or ``(V, 2)``; normals
-    ``(B, V, 3)`` or ``(V, 3)`` unit; faces ``(F, 3)``.
+    Args:
+        positions: float vertex positions.
+        uvs: texture coordinates per vertex (v up).
+        normals: unit vertex normals.
+        faces: int vertex indices.
+
+    Returns:
+        ``(tangent xyz, w)`` per vertex; unbatched only if all three inputs are unbatched.
+
+    Shape:
+        - positions: :math:`(V, 3)` or :math:`(B, V, 3)`.
+        - uvs: :math:`(V, 2)` or :math:`(B, V, 2)`.
+        - normals: :math:`(V, 3)` or :math:`(B, V, 3)`.
+        - faces: :math:`(F, 3)`.
+        - Output: :math:`(V, 4)`, or :math:`(B, V, 4)` if any input is batched.
+
+    Example:
+        >>> pos = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+        >>> nrm = torch.tensor([[0.0, 0, 1]]).expand(3, 3)
+        >>> vertex_tangents(pos, pos[:, :2], nrm, torch.tensor([[0, 1, 2]]))[0]
+        tensor([1., 0., 0., 1.])
     """
-    pos = _batched("positions", positions, 3)
-    uv = _batched("uvs", uvs, 2)
-    nrm = _batched("normals", normals, 3)
+    pos, b_pos = _batched("positions", positions, 3)
+    uv, b_uv = _batched("uvs", uvs, 2)
+    nrm, b_nrm = _batched("normals", normals, 3)
     if not (pos.shape[1] == uv.shape[1] == nrm.shape[1]):
         raise ValueError(
             f"positions, uvs, normals: vertex counts differ "
@@ -276,28 +357,48 @@ def vertex_tangents(
     t_unit = torch.where(ok, t_unit, _any_perpendicular(nrm))
     hand = (torch.linalg.cross(nrm, t_unit, dim=-1) * b_acc).sum(-1, keepdim=True)
     w = torch.where(hand < 0, -1.0, 1.0).to(pos.dtype)
-    return torch.cat([t_unit, w], dim=-1)
+    return _unbatch(torch.cat([t_unit, w], dim=-1), b_pos, b_uv, b_nrm)
 
 
 # --------------------------------------------------------------------------- transforms
-def _batched_matrix(matrix: object) -> torch.Tensor:
-    if isinstance(matrix, torch.Tensor) and matrix.dim() == 2:
-        matrix = matrix.unsqueeze(0)
-    return check_tensor("matrix", matrix, ("B", 4, 4), floating=True)
+def _batched_matrix(matrix: object) -> tuple[torch.Tensor, bool]:
+    batched = not (isinstance(matrix, torch.Tensor) and matrix.dim() == 2)
+    if not batched:
+        matrix = matrix.unsqueeze(0)  # type: ignore[union-attr]
+    return check_tensor("matrix", matrix, ("B", 4, 4), floating=True), batched
 
 
 def transform_points(points: torch.Tensor, matrix: torch.Tensor) -> torch.Tensor:
-    """Homogeneous transform: ``points (B, V, 3)`` or ``(V, 3)`` by ``matrix (B, 4, 4)`` or
-    ``(4, 4)`` (column-vector convention, ``p' = M @ [p, 1]``) -> ``(B, V, 4)``.
+    """Homogeneous transform of points (column-vector convention, ``p' = M @ [p, 1]``).
 
-    No perspective divide: the result is e.g. clip space for model-view-projection matrices.
-    A batch size of 1 (or an unbatched input) broadcasts against the other.
+    No perspective divide: the result is e.g. clip space for model-view-projection matrices
+    (:func:`torchraster.rasterize` takes ``(B, V, 4)``: index an unbatched result with
+    ``[None]``). A batch size of 1 (or an unbatched input) broadcasts against the other.
+
+    Args:
+        points: float points.
+        matrix: float 4x4 transforms, one or one per batch item.
+
+    Returns:
+        Homogeneous points ``(x, y, z, w)``; unbatched only if both inputs are unbatched.
+
+    Shape:
+        - points: :math:`(V, 3)` or :math:`(B, V, 3)`.
+        - matrix: :math:`(4, 4)` or :math:`(B, 4, 4)`.
+        - Output: :math:`(V, 4)`, or :math:`(B, V, 4)` if either input is batched.
+
+    Example:
+        >>> shift = torch.eye(4)
+        >>> shift[:3, 3] = torch.tensor([1.0, 2.0, 3.0])
+        >>> transform_points(torch.zeros(2, 3), shift)
+        tensor([[1., 2., 3., 1.],
+                [1., 2., 3., 1.]])
     """
-    pts = _batched("points", points, 3)
-    m = _batched_matrix(matrix)
+    pts, b_pts = _batched("points", points, 3)
+    m, b_m = _batched_matrix(matrix)
     pts, m = _broadcast(points=pts, matrix=m)
     homogeneous = torch.cat([pts, torch.ones_like(pts[..., :1])], dim=-1)
-    return homogeneous @ m.transpose(-1, -2)
+    return _unbatch(homogeneous @ m.transpose(-1, -2), b_pts, b_m)
 
 
 def _cofactor3(m: torch.Tensor) -> torch.Tensor:
@@ -309,35 +410,68 @@ def _cofactor3(m: torch.Tensor) -> torch.Tensor:
 
 
 def transform_normals(normals: torch.Tensor, matrix: torch.Tensor) -> torch.Tensor:
-    """Transform ``normals (B, V, 3)`` or ``(V, 3)`` by the inverse transpose of the 3x3 part
-    of ``matrix (B, 4, 4)`` or ``(4, 4)`` and renormalise -> unit ``(B, V, 3)``.
+    """Transform normals by the inverse transpose of the 3x3 part of ``matrix``, renormalised.
 
     Uses ``sign(det) * cofactor(M)`` (= ``|det| * M^-T``): no matrix inverse, so singular
     matrices give finite results (normals in the collapsed direction become zero). Note that
     a mirroring matrix (det < 0) also reverses the faces' winding.
+
+    Args:
+        normals: float normals (need not be unit).
+        matrix: float 4x4 model transforms (the translation is ignored).
+
+    Returns:
+        Unit normals (zero where degenerate); unbatched only if both inputs are unbatched.
+
+    Shape:
+        - normals: :math:`(V, 3)` or :math:`(B, V, 3)`.
+        - matrix: :math:`(4, 4)` or :math:`(B, 4, 4)`.
+        - Output: :math:`(V, 3)`, or :math:`(B, V, 3)` if either input is batched.
+
+    Example:
+        >>> stretch = torch.diag(torch.tensor([2.0, 1.0, 1.0, 1.0]))
+        >>> transform_normals(torch.tensor([[1.0, 1.0, 0.0]]), stretch)
+        tensor([[0.4472, 0.8944, 0.0000]])
     """
-    nrm = _batched("normals", normals, 3)
-    m = _batched_matrix(matrix)
+    nrm, b_nrm = _batched("normals", normals, 3)
+    m, b_m = _batched_matrix(matrix)
     nrm, m = _broadcast(normals=nrm, matrix=m)
     m3 = m[:, :3, :3]
     cof = _cofactor3(m3)
     det = (m3[:, 0] * cof[:, 0]).sum(-1)
     cof = cof * torch.where(det < 0, -1.0, 1.0).to(cof.dtype)[:, None, None]
-    return _safe_normalize(nrm @ cof.transpose(-1, -2))[0]
+    return _unbatch(_safe_normalize(nrm @ cof.transpose(-1, -2))[0], b_nrm, b_m)
 
 
 def transform_tangents(tangents: torch.Tensor, matrix: torch.Tensor) -> torch.Tensor:
-    """Transform glTF tangents ``(B, V, 4)`` or ``(V, 4)`` by ``matrix (B, 4, 4)`` or
-    ``(4, 4)`` -> ``(B, V, 4)``: xyz by the 3x3 part (renormalised), w flipped when
-    ``det < 0`` (a mirror swaps the handedness)."""
-    tan = _batched("tangents", tangents, 4)
-    m = _batched_matrix(matrix)
+    """Transform glTF tangents: xyz by the 3x3 part of ``matrix`` (renormalised), w flipped
+    when ``det < 0`` (a mirror swaps the handedness).
+
+    Args:
+        tangents: float glTF tangents, unit xyz and handedness w = +-1.
+        matrix: float 4x4 model transforms (the translation is ignored).
+
+    Returns:
+        Transformed tangents; unbatched only if both inputs are unbatched.
+
+    Shape:
+        - tangents: :math:`(V, 4)` or :math:`(B, V, 4)`.
+        - matrix: :math:`(4, 4)` or :math:`(B, 4, 4)`.
+        - Output: :math:`(V, 4)`, or :math:`(B, V, 4)` if either input is batched.
+
+    Example:
+        >>> mirror = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0]))
+        >>> transform_tangents(torch.tensor([[1.0, 0.0, 0.0, 1.0]]), mirror)
+        tensor([[-1.,  0.,  0., -1.]])
+    """
+    tan, b_tan = _batched("tangents", tangents, 4)
+    m, b_m = _batched_matrix(matrix)
     tan, m = _broadcast(tangents=tan, matrix=m)
     m3 = m[:, :3, :3]
     xyz = _safe_normalize(tan[..., :3] @ m3.transpose(-1, -2))[0]
     det = torch.linalg.det(m3.detach())
     w = tan[..., 3:] * torch.where(det < 0, -1.0, 1.0).to(tan.dtype)[:, None, None]
-    return torch.cat([xyz, w], dim=-1)
+    return _unbatch(torch.cat([xyz, w], dim=-1), b_tan, b_m)
 
 
 # ------------------------------------------------------------------------------ packing
@@ -382,8 +516,25 @@ def _concat(attrs: list[torch.Tensor | None]) -> torch.Tensor | None:
 
 
 def pack_meshes(meshes: list[Mesh]) -> PackedMeshes:
-    """Pack a list of N :class:`Mesh` (any sizes, same dtype and device) into
-    :class:`PackedMeshes` (see its docstring for shapes and the rasterize convention)."""
+    """Pack meshes of different topology into one vertex and face list.
+
+    Args:
+        meshes: N :class:`Mesh` of any sizes, one dtype and device.
+
+    Returns:
+        :class:`PackedMeshes` (see its docstring for the fields and the rasterize
+        convention: batch item i draws mesh i through ``face_ranges``).
+
+    Shape:
+        - Output positions: :math:`(\\sum V_i, 3)`; faces: :math:`(\\sum F_i, 3)` with global
+          vertex indices; face_ranges, vertex_ranges: :math:`(N, 2)`.
+
+    Example:
+        >>> tri = Mesh(torch.eye(3), torch.tensor([[0, 1, 2]]))
+        >>> pack_meshes([tri, tri]).face_ranges
+        tensor([[0, 1],
+                [1, 2]])
+    """
     if not isinstance(meshes, (list, tuple)) or not meshes:
         raise ValueError("meshes: expected a non-empty list of Mesh")
     for i, m in enumerate(meshes):

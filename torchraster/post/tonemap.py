@@ -19,7 +19,6 @@ Curves (x = exposed linear value):
 
 from __future__ import annotations
 
-import kornia
 import torch
 from torch import nn
 
@@ -119,9 +118,11 @@ def encode_srgb(x: torch.Tensor) -> torch.Tensor:
     Clamps to [0, 1], then kornia's exact piecewise sRGB transfer function
     (``kornia.color.linear_rgb_to_rgb``: 12.92 x below 0.0031308, else 1.055 x^(1/2.4) - 0.055).
     """
+    from kornia.color import linear_rgb_to_rgb  # lazy: `import torchraster` skips kornia
+
     x = check_image("x", x, 3)
     out_dtype = x.dtype
-    y = kornia.color.linear_rgb_to_rgb(x.to(compute_dtype(x)).clamp(0.0, 1.0))
+    y = linear_rgb_to_rgb(x.to(compute_dtype(x)).clamp(0.0, 1.0))
     return finish_low_precision(y, out_dtype)
 
 

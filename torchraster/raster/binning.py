@@ -1,7 +1,7 @@
 """Edge-function setup and binning of screen triangles into pixel blocks.
 
 Every screen triangle becomes one or more *records*: a block of kh x kw pixel centres at
-(x0, y0) whose coverage is tested by :func:`torchraster.raster.rasterize._cover_records`.
+(x0, y0) whose coverage is tested by :func:`torchraster.raster.rasterize.covered_keys`.
 
 * Small triangles (bounding box at most ``tile`` pixels wide and high) get one block of the
   next power-of-two size that holds their box, so a 2x3-pixel triangle tests 2x4 centres,
@@ -29,15 +29,25 @@ import torch
 
 from .clip import ScreenTriangles
 
+# Rows of TriangleSetup.coef, defined once: the per-triangle table is read by name only.
+EDGE_A = slice(0, 3)  #: edge function x coefficients A_e, e = 0, 1, 2 (edge opposite vertex e)
+EDGE_B = slice(3, 6)  #: y coefficients B_e
+EDGE_C = slice(6, 9)  #: constants C_e
+EDGE_MIN = slice(9, 12)  #: tie thresholds: edge e covers p iff A x + (B y + C) >= EDGE_MIN
+DZDX, DZDY = 12, 13  #: depth plane slopes per pixel
+REF_X, REF_Y, REF_Z = 14, 15, 16  #: the depth plane's reference vertex and its NDC z
+COEF_ROWS = 17
+
 
 @dataclass
 class TriangleSetup:
     """Per-triangle coverage and depth equations of N triangles, component-major.
 
-    coef:  (17, N) float rows: edge A (3), B (3), C (3), tie threshold (3), depth slopes
-           dz/dx, dz/dy, vertex 0 (x0, y0) and its depth z0. Edge e (opposite vertex e)
-           covers p iff A x + (B y + C) >= threshold; depth = z0 + dzdx (x - x0) +
-           dzdy (y - y0).
+    coef:  (COEF_ROWS, N) float rows, named by the module constants: edge A (EDGE_A), B
+           (EDGE_B), C (EDGE_C), tie threshold (EDGE_MIN), depth slopes dz/dx, dz/dy (DZDX,
+           DZDY), reference vertex (REF_X, REF_Y) and its depth (REF_Z). Edge e (opposite
+           vertex e) covers p iff A x + (B y + C) >= threshold; depth = z0 + dzdx (x - x0)
+           + dzdy (y - y0).
     box:   (4, N) int64 inclusive pixel box xmin, xmax, ymin, ymax (clamped to the image)
     key_lo:(N,) int64 face id (low 32 bits of the depth-resolve key)
     batch: (N,) int64 batch item
@@ -83,6 +93,23 @@ def setup_triangles(tris: ScreenTriangles) -> TriangleSetup:
     dzdy = (dx1 * dz2 - dx2 * dz1) / area
     coef = torch.cat([ea, eb, ec, thresh, dzdx[None], dzdy[None], x[:1], y[:1], z[:1]])
     return TriangleSetup(coef=coef, box=tris.box, key_lo=tris.face, batch=tris.batch)
+
+
+def block_edge(coef: torch.Tensor, e: int, px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
+    """Edge function e of R triangles (``coef`` (rows, R)) at a (kh, kw, R) block of pixel
+    centres px (kw, R), py (kh, R): A x + (B y + C), always in this order of float ops, so
+    shared edges get exactly opposite values (compare with ``coef[EDGE_MIN][e]``)."""
+    ex = coef[EDGE_A][e] * px
+    ey = coef[EDGE_B][e] * py + coef[EDGE_C][e]
+    return torch.add(ey[:, None, :], ex[None, :, :])
+
+
+def block_depth(coef: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
+    """Depth planes of R triangles at a (kh, kw, R) block of pixel centres (see
+    :func:`block_edge`): z0 + dzdx (x - x0) + dzdy (y - y0)."""
+    zx = coef[DZDX] * (px - coef[REF_X])
+    zy = coef[REF_Z] + coef[DZDY] * (py - coef[REF_Y])
+    return torch.add(zy[:, None, :], zx[None, :, :])
 
 
 def _canonical_rotation(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor):
@@ -171,11 +198,12 @@ def sort_by_block(tris: ScreenTriangles, resolution: tuple[int, int], tile: int
 
 def bin_triangles(
     setup: TriangleSetup, runs: list[tuple[int, int, int, int]], n_small: int,
-    resolution: tuple[int, int], tile: int, max_candidates: int,
+    resolution: tuple[int, int], tile: int, max_candidates: int, margin: float = 0.0,
 ) -> Iterator[Records]:
     """Yield records covering every triangle's pixel box, in bounded-size chunks.
 
     ``runs`` and ``n_small`` come from :func:`sort_by_block` (setup in that order).
+    ``margin``: keep the tiles within this many pixels of a large triangle (soft coverage).
     """
     h, w = resolution
     for kh, kw, start, count in runs:
@@ -188,12 +216,12 @@ def bin_triangles(
     n = setup.box.shape[1]
     if n_small < n:
         big = torch.arange(n_small, n, device=setup.box.device)
-        yield from _bin_large(setup, big, resolution, tile, max_candidates)
+        yield from _bin_large(setup, big, resolution, tile, max_candidates, margin)
 
 
 def _bin_large(
     setup: TriangleSetup, big: torch.Tensor, resolution: tuple[int, int], tile: int,
-    max_candidates: int,
+    max_candidates: int, margin: float,
 ) -> Iterator[Records]:
     """Records for triangles larger than a tile: one per non-empty screen tile they touch."""
     h, w = resolution
@@ -218,7 +246,8 @@ def _bin_large(
         ntx_r = torch.repeat_interleave(ntx[sl], counts)
         x0 = ((torch.repeat_interleave(tx0[sl], counts) + local % ntx_r) * tile).clamp(max=w - tw)
         y0 = ((torch.repeat_interleave(ty0[sl], counts) + local // ntx_r) * tile).clamp(max=h - th)
-        keep = _tile_may_overlap(setup.coef.index_select(1, tri), x0, y0, th, tw).nonzero()
+        keep = _tile_may_overlap(setup.coef.index_select(1, tri), x0, y0, th, tw, margin)
+        keep = keep.nonzero()
         keep = keep.squeeze(1)
         tri, x0, y0 = tri.index_select(0, keep), x0.index_select(0, keep), y0.index_select(0, keep)
         for s in range(0, tri.numel(), per_chunk):
@@ -226,11 +255,12 @@ def _bin_large(
 
 
 def _tile_may_overlap(coef: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, th: int,
-                      tw: int) -> torch.Tensor:
-    """False for tiles that lie entirely outside one edge (conservative by 1e-3 px)."""
-    ea, eb, ec = coef[0:3], coef[3:6], coef[6:9]  # (3, R) each
+                      tw: int, margin: float = 0.0) -> torch.Tensor:
+    """False for tiles that lie entirely more than ``margin`` pixels outside one edge
+    (conservative by 1e-3 px)."""
+    ea, eb, ec = coef[EDGE_A], coef[EDGE_B], coef[EDGE_C]  # (3, R) each
     xs = torch.where(ea > 0, x0 + tw - 1, x0).to(coef.dtype)
     ys = torch.where(eb > 0, y0 + th - 1, y0).to(coef.dtype)
     best = ea * xs + eb * ys + ec  # largest E over the tile's corner pixel centres
-    margin = 1e-3 * (ea.abs() + eb.abs())
-    return (best >= -margin).all(dim=0)
+    slack = (1e-3 + margin) * (ea.abs() + eb.abs())  # |A| + |B| >= the edge's length
+    return (best >= -slack).all(dim=0)

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import torch
 
 GUARD_BAND = 8.0  # clip |x|, |y| to GUARD_BAND * w: triangles stay within ~8 viewports
-_MAX_POLY = 9  # a triangle clipped by 6 planes has at most 3 + 6 vertices
+MAX_POLY = 9  #: a triangle clipped by the 6 planes has at most 3 + 6 vertices
 
 
 @dataclass
@@ -98,13 +98,16 @@ def clip_and_project(
     batch: torch.Tensor,
     resolution: tuple[int, int],
     cull_backfaces: bool | torch.Tensor,
+    margin: float = 0.0,
 ) -> ScreenTriangles:
     """Clip, cull and project the triangles (batch[n], faces[face[n]]).
 
     clip_pos: (B, V, 4) clip-space vertices; screen_pos: (B, V, 3) their :func:`project`
     ions; codes: (B, V) their :func:`outcodes`; faces: (F, 3); face, batch: (N,) int64.
     Front faces are counter-clockwise in NDC (y up). cull_backfaces: drop back faces, for
-    every face (bool) or per face ((F,) bool tensor). Returns :class:`ScreenTriangles`.
+    every face (bool) or per face ((F,) bool tensor). margin: grow every pixel box by this
+    many pixels (soft coverage reaches beyond the triangle). Returns
+    :class:`ScreenTriangles`.
     """
     n_vert = codes.shape[1]
     # Global vertex ids (item * V + vertex) of every corner; index_select is the fast gather.
@@ -139,10 +142,13 @@ def clip_and_project(
     elif cull_backfaces:
         ok &= area < 0
     # Pixel boxes; cull triangles whose box holds no pixel centre (tiny or off-screen).
-    xmin = torch.ceil(x.amin(0).clamp_(min=0))
-    xmax = torch.floor(x.amax(0).clamp_(max=w - 1))
-    ymin = torch.ceil(y.amin(0).clamp_(min=0))
-    ymax = torch.floor(y.amax(0).clamp_(max=h - 1))
+    xmin, xmax, ymin, ymax = x.amin(0), x.amax(0), y.amin(0), y.amax(0)
+    if margin:
+        xmin, xmax, ymin, ymax = xmin - margin, xmax + margin, ymin - margin, ymax + margin
+    xmin = torch.ceil(xmin.clamp_(min=0))
+    xmax = torch.floor(xmax.clamp_(max=w - 1))
+    ymin = torch.ceil(ymin.clamp_(min=0))
+    ymax = torch.floor(ymax.clamp_(max=h - 1))
     ok &= (xmin <= xmax) & (ymin <= ymax)
     # Culled triangles stay in the arrays, flagged: binning drops them in the same gather
     # that orders the others by block shape (one permutation instead of two).
@@ -160,17 +166,34 @@ def _lex_less(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 def _clip_polygons(tri: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Sutherland-Hodgman clip of (M, 3, 4) triangles against all planes, then fan them.
+    """Clip (M, 3, 4) triangles against all planes (:func:`clip_polygons`), then fan them.
 
-    Returns (K, 3, 4) triangles and their (K,) source index into ``tri``. Intersections are
-    computed with the edge's endpoints in a canonical (lexicographic) order, so an edge
-    shared by two triangles is cut at bitwise the same point from either side.
+    Returns (K, 3, 4) triangles and their (K,) source index into ``tri``.
+    """
+    poly, count = clip_polygons(tri)
+    # Fan triangulation (v0, v_k, v_k+1) for k = 1 .. count - 2.
+    k = torch.arange(1, MAX_POLY - 1, device=tri.device)
+    fan_ok = k[None, :] < (count[:, None] - 1)
+    src, kk = fan_ok.nonzero(as_tuple=True)
+    kk = kk + 1
+    out = torch.stack([poly[src, 0], poly[src, kk], poly[src, kk + 1]], dim=1)
+    return out, src
+
+
+def clip_polygons(tri: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sutherland-Hodgman clip of (M, 3, 4) clip-space triangles against all planes (near,
+    far, guard band).
+
+    Returns (M, MAX_POLY, 4) convex polygons (slots past the count are zero) and their (M,)
+    vertex counts (< 3: nothing left). Intersections are computed with the edge's endpoints
+    in a canonical (lexicographic) order, so an edge shared by two triangles is cut at
+    bitwise the same point from either side. Differentiable with respect to ``tri``.
     """
     m = tri.shape[0]
-    poly = tri.new_zeros(m, _MAX_POLY, 4)
+    poly = tri.new_zeros(m, MAX_POLY, 4)
     poly[:, :3] = tri
     count = torch.full((m,), 3, dtype=torch.long, device=tri.device)
-    slots = torch.arange(_MAX_POLY, device=tri.device)
+    slots = torch.arange(MAX_POLY, device=tri.device)
     for plane in _PLANES:
         valid = slots < count[:, None]
         nxt_idx = torch.where(slots + 1 < count[:, None], slots + 1, 0)
@@ -191,15 +214,9 @@ def _clip_polygons(tri: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         emit = emit.reshape(m, -1)
         cand = cand.reshape(m, -1, 4)
         dest = torch.cumsum(emit, dim=1) - 1
-        dest = torch.where(emit & (dest < _MAX_POLY), dest, _MAX_POLY)  # overflow slot
-        new = tri.new_zeros(m, _MAX_POLY + 1, 4)
+        dest = torch.where(emit & (dest < MAX_POLY), dest, MAX_POLY)  # overflow slot
+        new = tri.new_zeros(m, MAX_POLY + 1, 4)
         new.scatter_(1, dest[:, :, None].expand(-1, -1, 4), cand)
-        poly = new[:, :_MAX_POLY]
-        count = emit.sum(dim=1).clamp(max=_MAX_POLY)
-    # Fan triangulation (v0, v_k, v_k+1) for k = 1 .. count - 2.
-    k = torch.arange(1, _MAX_POLY - 1, device=tri.device)
-    fan_ok = k[None, :] < (count[:, None] - 1)
-    src, kk = fan_ok.nonzero(as_tuple=True)
-    kk = kk + 1
-    out = torch.stack([poly[src, 0], poly[src, kk], poly[src, kk + 1]], dim=1)
-    return out, src
+        poly = new[:, :MAX_POLY]
+        count = emit.sum(dim=1).clamp(max=MAX_POLY)
+    return poly, count

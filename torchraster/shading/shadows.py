@@ -552,7 +552,8 @@ def render_shadow_maps(groups: Sequence[ShadowMaps], positions: torch.Tensor,
             else:
                 d = rasterize_depth(clip, faces, (size, size), face_ranges=ranges)
             ndc.append(d.to(positions.dtype))
-        ndc_all = torch.cat(ndc)
+        # every view of the size may be skipped (e.g. no cascade covers a caster)
+        ndc_all = torch.cat(ndc) if ndc else pos.new_empty(0, size, size).to(positions.dtype)
         start = 0
         for g in members:
             b, n_lights, nv = g.view.shape[:3]
@@ -571,8 +572,8 @@ def render_shadow_maps(groups: Sequence[ShadowMaps], positions: torch.Tensor,
             g.depth = lin
             what = {"cascades": f"{nv} cascades", "cube": "cube 6 faces",
                     "single": "1 map"}[g.layout]
-            if g.layout == "cascades" and keep.numel() < nv:
-                what = f"{keep.numel()} of {nv} cascades"
+            if keep.numel() < nv:
+                what = f"{keep.numel()} of {nv} " + ("cascades" if nv > 1 else "maps")
             g.steps.append(f"shadow {g.kind}{g.lights} {what} {size}x{size} {g.settings.filter}")
 
 
@@ -614,7 +615,11 @@ def _select_view(g: ShadowMaps, p: torch.Tensor, item: torch.Tensor,
     c = splits.shape[-1] - 1
     z = cam_depth[:, None].expand(n_p, n_l)
     idx = (z[..., None] >= splits[..., 1:]).sum(-1)  # first split end beyond z
-    inside = (z >= splits[..., 0]) & (idx < c)
+    # the splits span the casters' depths, not the receivers': a receiver nearer than the
+    # nearest caster uses the first cascade, one beyond the farthest the last (shadows are
+    # cut off only at max_distance)
+    max_d = g.settings.max_distance
+    inside = torch.ones_like(idx, dtype=torch.bool) if max_d is None else z < max_d
     idx = idx.clamp_max(c - 1)
     lo = torch.gather(splits, 2, idx[..., None])[..., 0]
     hi = torch.gather(splits, 2, idx[..., None] + 1)[..., 0]

@@ -10,7 +10,7 @@ hence world-space, point) and clip ``w = det(M) / sum(e)`` where
 The point lies on the face with ``w > 0`` iff every ``det * e_k >= 0`` (and ``det * sum(e) > 0``).
 NDC depth is ``z = sum(e_k z_k) / det`` (``sum(e_k w_k) = det``), affine in screen space.
 
-The public contract (DESIGN.md) is then applied per point, without any clipping code:
+The public contract (docs/design.md) is then applied per point, without any clipping code:
 - visible iff ``w > 0`` and ``-w <= z <= w`` (so faces crossing the near or far plane, or
   reaching behind the camera, are clipped exactly where the plane cuts them);
 - top-left rule on edges: a pixel centre with ``e_k == 0`` is covered iff the inward normal of

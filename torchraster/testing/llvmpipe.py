@@ -35,8 +35,8 @@ Threads: llvmpipe reads ``LP_NUM_THREADS`` when the context is created. If it is
 module sets it to the number of cores this process may use (llvmpipe's own default), so the
 value is always known and reported by ``num_threads()``.
 
-Run ``python scripts/llvmpipe.py`` for a demo: renderer string, thread count, and the median
-time of an 80k-face sphere at 512x512, batch 1 and batch 8.
+Run ``python -m torchraster.testing.llvmpipe`` for a demo: renderer string, thread count,
+and the median time of an 80k-face sphere at 512x512, batch 1 and batch 8.
 """
 
 from __future__ import annotations
