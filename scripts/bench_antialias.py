@@ -15,6 +15,7 @@ them alike.
 
     python scripts/bench_antialias.py            # the table, written to docs/benchmarks.md
     python scripts/bench_antialias.py --repeats 3 --no-write
+    python scripts/bench_antialias.py --picture  # docs/images/antialias.png only
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 import trimesh
 
@@ -95,11 +97,110 @@ def measure(name: str, res: int, batch: int, repeats: int) -> dict:
     return out
 
 
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _rgb(img: torch.Tensor, zoom: int) -> np.ndarray:
+    """(3, h, w) in [0, 1] -> uint8 (h * zoom, w * zoom, 3), nearest-neighbour zoom."""
+    img = img.clamp(0, 1).repeat_interleave(zoom, 1).repeat_interleave(zoom, 2)
+    return (img.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
+
+
+def _signed(d: torch.Tensor, scale: float) -> torch.Tensor:
+    """(h, w) signed values -> (3, h, w): blue negative, white 0, red positive."""
+    v = (d / scale).clamp(-1, 1)
+    pos, neg = v.clamp_min(0), (-v).clamp_min(0)
+    return torch.stack([1 - neg, 1 - pos - neg, 1 - pos])
+
+
+def picture(path: Path) -> None:
+    """Spot at 96^2, zoomed 4x: no antialiasing, antialias, a 16x16 supersampled
+    reference, the antialiased alpha's per-pixel derivative with respect to a screen-space
+    shift to the right (autograd, double backward) and that of the supersampled reference
+    (central differences)."""
+    from PIL import Image, ImageDraw
+
+    res, zoom, ss = 96, 4, 16
+    crop = (slice(0, 96), slice(0, 96))
+    mesh = tr.load_spot()
+    verts, faces = mesh.positions.double(), mesh.faces
+    view = tr.camera.look_at([2.3, 0.7, 1.9], [0.0, 0.0, 0.0]).double()
+    clip0 = tr.camera.transform_points(
+        verts, tr.camera.perspective(40.0, 1.0, 0.1).double() @ view).reshape(1, -1, 4)
+    light = torch.tensor([0.4, 0.8, 0.6], dtype=torch.float64)
+    light = light / light.norm()
+    normals = tr.vertex_normals(verts, faces)
+    shade = (0.25 + 0.75 * (normals.reshape(-1, 3) @ light).clamp_min(0))[:, None]
+    colors = torch.cat([shade * torch.tensor([0.95, 0.75, 0.45], dtype=torch.float64),
+                        torch.ones_like(shade)], 1)
+    background = torch.tensor([0.16, 0.2, 0.28], dtype=torch.float64)[:, None, None]
+
+    def shifted(dx: torch.Tensor) -> torch.Tensor:  # dx pixels to the right
+        return torch.cat([clip0[..., :1] + dx * (2.0 / res) * clip0[..., 3:], clip0[..., 1:]],
+                         -1)
+
+    def render(dx: torch.Tensor, antialiased: bool) -> torch.Tensor:
+        clip = shifted(dx)
+        frags = tr.rasterize(clip, faces, (res, res))
+        rgba = tr.interpolate(colors, frags, faces)
+        if antialiased:
+            rgba = tr.antialias(rgba, frags, clip, faces)
+        return rgba[0]
+
+    def reference(dx: float) -> torch.Tensor:
+        clip = shifted(torch.tensor(dx, dtype=torch.float64))
+        frags = tr.rasterize(clip, faces, (res * ss, res * ss))
+        rgba = tr.interpolate(colors, frags, faces)[0]
+        return rgba.reshape(4, res, ss, res, ss).mean((2, 4))
+
+    def composite(rgba: torch.Tensor) -> torch.Tensor:
+        return rgba[:3] + (1 - rgba[3:]) * background
+
+    zero = torch.zeros((), dtype=torch.float64)
+    plain, smooth, ref = render(zero, False), render(zero, True), reference(0.0)
+    dx = torch.zeros((), dtype=torch.float64, requires_grad=True)
+    alpha = render(dx, True)[3]
+    u = torch.ones_like(alpha, requires_grad=True)
+    (g,) = torch.autograd.grad((alpha * u).sum(), dx, create_graph=True)
+    (d_alpha,) = torch.autograd.grad(g, u)
+    step = 0.25
+    d_ref = (reference(step)[3] - reference(-step)[3]) / (2 * step)
+    err_plain = float((plain[3] - ref[3]).abs().mean())
+    err_aa = float((smooth[3] - ref[3]).abs().mean())
+    panels = [
+        (composite(plain), f"rasterize (alpha err {err_plain:.4f})"),
+        (composite(smooth), f"+ antialias (alpha err {err_aa:.4f})"),
+        (composite(ref), f"{ss}x{ss} supersampled"),
+        (_signed(d_alpha.detach(), 1.0), "d alpha / d shift: antialias"),
+        (_signed(d_ref, 1.0), "reference (central diff.)"),
+    ]
+    tiles = []
+    for img, text in panels:
+        im = Image.fromarray(_rgb(img[:, crop[0], crop[1]], zoom))
+        draw = ImageDraw.Draw(im)
+        draw.rectangle((0, 0, 6 * len(text) + 8, 14), fill=(0, 0, 0))
+        draw.text((4, 1), text, fill=(255, 255, 255))
+        tiles.append(np.asarray(im))
+    gap = np.full((tiles[0].shape[0], 4, 3), 255, dtype=np.uint8)
+    row = np.concatenate([x for t in tiles for x in (t, gap)][:-1], 1)
+    Image.fromarray(row).save(path, optimize=True)
+    x = torch.arange(res, dtype=torch.float64)
+    print(f"wrote {path.relative_to(ROOT)}: mean |alpha - reference| {err_plain:.4f} "
+          f"without, {err_aa:.4f} with antialias; d/dshift sum(alpha x) "
+          f"{float((d_alpha * x).sum()):.1f} (antialias), {float((d_ref * x).sum()):.1f} "
+          f"(reference), area {float(ref[3].sum()):.1f} px")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--no-write", action="store_true", help="print only")
+    ap.add_argument("--picture", action="store_true",
+                    help="only write docs/images/antialias.png")
     args = ap.parse_args()
+    if args.picture:
+        picture(ROOT / "docs" / "images" / "antialias.png")
+        return
     from benchmd import markdown_table, update_section
 
     rows = []

@@ -133,28 +133,31 @@ def main() -> None:
     repeats = 2 if args.quick else args.repeats
     sizes = [256] if args.quick else [256, 512]
     layers = layers_table(repeats, sizes)
-    soft = soft_table(max(1, repeats // 2), sizes)
+    soft = soft_table(repeats, sizes)
     print(layers)
     print(soft)
     if args.quick:
         return
     body = (
         "## Depth layers and soft rasterization\n\n"
-        f"{args.threads} torch thread(s); variants of a scene timed in turns, medians of "
-        f"{repeats} (soft: {max(1, repeats // 2)}) runs.\n\n"
+        f"{args.threads} torch thread(s); the variants of a scene are timed in turns (load "
+        f"from other processes hits them alike), medians of {repeats} runs.\n\n"
         "`rasterize(..., layers=K)` resolves the K nearest surfaces of every pixel in one "
         "binning pass (`insert_layers`: one `scatter_reduce(amin)` per candidate and round it "
-        "survives) and then runs the differentiable pass once per layer. Layer 0 is bit for "
-        "bit the plain result (checked). \"x plain if re-binned\" is the least that peeling by "
-        "re-running the whole rasterizer once per layer would cost. A closed mesh has two "
-        "layers where it covers, so K = 4 and 8 add only empty layers.\n\n"
+        "survives) and then runs the differentiable pass once per layer, so the cost above "
+        "plain is about one extra fragment pass per non-empty layer. Layer 0 is bit for bit "
+        "the plain result (checked). \"x plain if re-binned\" is the least that peeling by "
+        "re-running the whole rasterizer once per layer would cost. The convex icosphere has "
+        "two layers wherever it covers (a third on a pixel or two of its silhouette, where "
+        "float32 projection is not exactly convex); Spot has up to 8 at a few pixels.\n\n"
         + layers
         + "\n\n`soft_rasterize` (SoftRas-style coverage `sigmoid(d / sigma)`, the 8 nearest "
-        "faces within the cut-off distance 9.2 sigma) bins every triangle with its box grown "
-        "by that distance and tests the exact pixel-to-triangle distance, so its cost grows "
-        "with the number of faces within the cut-off of each pixel; the differentiable pass "
-        "runs under activation checkpointing in chunks. Backward columns include "
-        "`soft_blend` (or `interpolate`) and a sum-of-squares loss.\n\n"
+        "faces within the cut-off distance 9.2 sigma, back faces kept) bins every triangle "
+        "with its box grown by that distance and tests the exact pixel-to-triangle distance, "
+        "so its cost grows with the number of faces within the cut-off of each pixel (about "
+        "faces x pi (9.2 sigma)^2 / pixels: large for the 80k-face sphere at 256²); the "
+        "differentiable pass runs under activation checkpointing in chunks. The backward "
+        "columns include `soft_blend` (or `interpolate`) and a sum-of-squares loss.\n\n"
         + soft
     )
     update_section("layers", body)

@@ -174,6 +174,11 @@ def _object(**change: object) -> tuple[dict, dict]:
     return OBJECT_BASE, {**OBJECT_BASE, "scene": {"objects": [{**PRIMITIVE, **change}]}}
 
 
+TWO_GLASS = {**OBJECT_BASE, "scene": {"objects": [
+    {**PRIMITIVE, "material": {"base_color": [1, 0, 0, 0.5], "alpha_mode": "BLEND"}},
+    {**PRIMITIVE, "transform": {"translate": [0.8, 0.3, -0.6]},
+     "material": {"base_color": [0, 0, 1, 0.5], "alpha_mode": "BLEND"}}]}}
+
 OBJECT_VARIATIONS = {
     "scene.objects.mesh": ({**OBJECT_BASE, "scene": {"objects": [
         {"primitive": "box", "size": 0.6, "transform": PRIMITIVE["transform"]}]}},
@@ -195,6 +200,19 @@ OBJECT_VARIATIONS = {
         {**OBJECT_BASE, "materials": [{"match": "paint", "base_color": [0.1, 0.9, 0.1]}]},
         {**OBJECT_BASE, "materials": [{"match": "paint", "base_color": [0.1, 0.9, 0.1]}],
          "scene": {"objects": [{**PRIMITIVE, "material": {"name": "paint"}}]}}),
+    "scene.objects.material.base_color_texture": _object(
+        material={"base_color_texture": "override.png"}),
+    "scene.objects.material.alpha_mode": _object(
+        material={"base_color": [1.0, 1.0, 1.0, 0.3], "alpha_mode": "BLEND"}),
+    "scene.objects.material.alpha_cutoff": (
+        {**OBJECT_BASE, "scene": {"objects": [{**PRIMITIVE, "material": {
+            "base_color": [1.0, 1.0, 1.0, 0.5], "alpha_mode": "MASK", "alpha_cutoff": 0.4}}]}},
+        {**OBJECT_BASE, "scene": {"objects": [{**PRIMITIVE, "material": {
+            "base_color": [1.0, 1.0, 1.0, 0.5], "alpha_mode": "MASK", "alpha_cutoff": 0.6}}]}}),
+    # two blended boxes in a row: with one layer only the front one is seen
+    "render.alpha_layers": ({**TWO_GLASS, "render": {"alpha_layers": 4, "shading": "pbr"}},
+                            {**TWO_GLASS, "render": {"alpha_layers": 1, "shading": "pbr"}}),
+    "render.antialias": ({}, {"render": {"antialias": True}}),
     "scene.objects.cast_shadows": _object(cast_shadows=False),
     "scene.objects.receive_shadows": _object(receive_shadows=False),
     "scene.cast_shadows": (OBJECT_BASE, {**OBJECT_BASE, "scene": {"cast_shadows": False}}),

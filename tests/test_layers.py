@@ -16,7 +16,7 @@ LAYERS: list[set[str]] = [
     {"gbuffer", "scene", "testing"},
     {"shading"},
     {"post"},
-    {"renderer"},
+    {"renderer", "transparency"},
     {"config", "pipeline", "cli", "__main__", "__init__"},
 ]
 CONFIG_ONLY = {"pydantic", "yaml"}

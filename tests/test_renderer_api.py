@@ -45,13 +45,6 @@ def test_single_sided_materials_cull_their_back_faces():
     assert "cull single-sided" in str(out.plan)
 
 
-def test_alpha_modes_warn_until_implemented():
-    pos, faces = _quad()
-    mat = tr.Material(name="leaves", alpha_mode="MASK", alpha_cutoff=0.3, double_sided=True)
-    with pytest.warns(tr.NotImplementedWarning, match="alpha_mode 'MASK'"):
-        tr.Renderer(8, shading="unlit")(tr.RenderScene(pos, faces, materials=[mat]), VIEW, PROJ)
-
-
 def test_pbr_without_light_says_so_and_plans_unlit():
     pos, faces = _quad()
     with pytest.warns(UserWarning, match="no lights and no environment"):

@@ -1,11 +1,12 @@
 """Shadow maps (issue 8) against an independent float64 ray tracer.
 
 The reference is :mod:`torchraster.testing.raytrace` (brute-force Möller-Trumbore, no maps,
-no biases). The engine's shadow factor of a pixel is read from the public API: the ratio of
-a render with shadows to the same render without (one light, no ambient), at pixels the
-light reaches (unshadowed radiance > 0) with ``n . l > 0.1`` (at the terminator a
-tessellated caster shadows itself in the reference, which biases deliberately hide). The
-reference traces rays from the same G-buffer positions and normals.
+no biases). The engine's shadow factor of a pixel is read from the public API
+(``raytrace.render_shadow_factor``): the ratio of a render with shadows to the same render
+without (one light, no ambient), at pixels the light reaches (unshadowed radiance > 0) with
+``n . l > 0.1`` (at the terminator a tessellated caster shadows itself in the reference,
+which biases deliberately hide). The reference traces rays from the same G-buffer positions
+and normals.
 
 Mask metrics (:func:`~torchraster.testing.raytrace.mask_stats`, shadowed = visibility <
 0.5): IoU of the shadowed pixels; acne = reference-lit pixels we shadow, peter-panning =
@@ -18,7 +19,6 @@ Measured numbers are printed (``pytest -s``); docs/benchmarks.md ("Shadows") has
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -37,106 +37,14 @@ from torchraster.testing import raytrace as rt
 
 F64 = torch.float64
 MATERIAL = tr.Material(metallic_factor=0.0, roughness_factor=0.8)
-#: The lights of the sphere-on-a-plane scenes (as in the shadow smoke test).
-LIGHTS = {"directional": {"direction": (-1.0, -2.0, -0.5)},
-          "spot": {"position": (1.0, 2.5, 0.5), "direction": (-1.0, -2.5, -0.5), "cone": 0.8},
-          "point": {"position": (1.0, 1.6, 0.5)}}
-KINDS = tuple(LIGHTS)
+KINDS = tuple(rt.LIGHTS)
+make_lights, ray_light, shoot, reference = (rt.make_lights, rt.ray_light,
+                                            rt.render_shadow_factor, rt.reference_for)
 
 
 def camera(eye=(0.0, 2.5, 4.0), target=(0.0, 0.3, 0.0), fov: float = 45.0):
+    """World -> view and projection ``(1, 4, 4)`` of the scenes' cameras."""
     return tr.camera.look_at(list(eye), list(target)), tr.camera.perspective(fov, 1.0, 0.1)
-
-
-def make_lights(kind: str, settings: ShadowSettings | None, *, direction=None, position=None,
-                cone: float = 0.8, cast: bool = True, dtype=torch.float32) -> tr.Lights:
-    """One light of ``kind`` (defaults: :data:`LIGHTS`) casting shadows with ``settings``."""
-    spec = dict(LIGHTS[kind])
-    spec.update({k: v for k, v in (("direction", direction), ("position", position))
-                 if v is not None})
-    one = torch.ones(1, 1, 3, dtype=dtype)
-    flag = torch.tensor([[cast]])
-
-    def vec(v):
-        return torch.tensor([[list(v)]], dtype=dtype)
-
-    if kind == "directional":
-        part = tr.DirectionalLights(direction=vec(spec["direction"]), color=one,
-                                    intensity=torch.tensor([[3.0]], dtype=dtype),
-                                    cast_shadows=flag, shadow=settings)
-    elif kind == "spot":
-        part = tr.SpotLights(position=vec(spec["position"]), direction=vec(spec["direction"]),
-                             color=one, intensity=torch.tensor([[10.0]], dtype=dtype),
-                             outer_cone_angle=torch.tensor([[spec.get("cone", cone)]],
-                                                           dtype=dtype),
-                             cast_shadows=flag, shadow=settings)
-    else:
-        part = tr.PointLights(position=vec(spec["position"]), color=one,
-                              intensity=torch.tensor([[5.0]], dtype=dtype), cast_shadows=flag,
-                              shadow=settings)
-    return tr.Lights(**{kind: part})
-
-
-def ray_light(lights: tr.Lights) -> dict[str, torch.Tensor]:
-    """The light of ``lights`` as :func:`raytrace.shadow_rays` keywords."""
-    if lights.directional is not None:
-        return {"direction": lights.directional.direction[0, 0]}
-    return {"light_position": (lights.spot or lights.point).position[0, 0]}
-
-
-@dataclass
-class Shot:
-    """What a render tells about shadows: ``vis`` ``(H, W)`` (ours, 1 where not valid),
-    ``valid`` ``(H, W)`` bool, G-buffer ``position`` / ``normal`` ``(3, H, W)``, the plan."""
-
-    vis: torch.Tensor
-    valid: torch.Tensor
-    position: torch.Tensor
-    normal: torch.Tensor
-    plan: tr.RenderPlan
-    image: torch.Tensor
-
-
-def shoot(positions, faces, cast, lights, view, proj, res: int = 256, receive=None,
-          min_cos: float = 0.1) -> Shot:
-    """Render with and without shadows; the visibility is their ratio (one light). Valid:
-    lit pixels with ``n . l > min_cos``."""
-    scene = tr.RenderScene(positions, faces, materials=[MATERIAL], cast_shadows=cast,
-                           receive_shadows=receive)
-    with torch.no_grad():
-        on = tr.Renderer(res)(scene, view, proj, lights, channels={"position", "normal"})
-        off = tr.Renderer(res, shadows=False)(scene, view, proj, lights)
-    a, b = on.image[0].mean(0), off.image[0].mean(0)
-    p, n = on.gbuffer["position"][0], on.gbuffer["normal"][0]
-    light = ray_light(lights)
-    if "direction" in light:
-        to_light = -light["direction"].view(3, 1, 1).expand_as(p)
-    else:
-        to_light = light["light_position"].view(3, 1, 1) - p
-    to_light = to_light / to_light.norm(dim=0, keepdim=True).clamp_min(1e-12)
-    valid = (b > 1e-6 * b.max()) & ((n * to_light).sum(0) > min_cos)
-    vis = torch.where(valid, a / b.clamp_min(1e-30), torch.ones_like(a))
-    return Shot(vis, valid, p, n, on.plan, on.image[0])
-
-
-def reference(shot: Shot, lights: tr.Lights, positions, faces, *, radius=None, angle=None,
-              samples: int = 36) -> torch.Tensor:
-    """Ray-traced ``(H, W)`` float64 visibility at the valid pixels of ``shot`` (1 elsewhere):
-    hard, or of an area light (disc ``radius`` / cone ``angle``) when given."""
-    m = shot.valid.flatten()
-    pts = shot.position.permute(1, 2, 0).reshape(-1, 3)[m]
-    nrm = shot.normal.permute(1, 2, 0).reshape(-1, 3)[m]
-    out = torch.ones(m.numel(), dtype=F64)
-    light = ray_light(lights)
-    if radius is None and angle is None:
-        out[m] = rt.shadow_rays(pts, nrm, positions, faces, **light)
-    elif angle is not None:
-        out[m] = rt.area_shadow_rays(pts, nrm, positions, faces, angle=angle,
-                                     samples=samples, **light)
-    else:
-        out[m] = rt.area_shadow_rays(pts, nrm, positions, faces, radius=radius,
-                                     samples=samples, **light)
-    return out.view(shot.valid.shape)
 
 
 # ------------------------------------------------------------------------------- scenes

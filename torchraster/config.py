@@ -123,6 +123,19 @@ class ObjectMaterialConfig(_Strict):
     metallic: Annotated[float, Field(ge=0, le=1)] = 0.0
     roughness: Annotated[float, Field(ge=0, le=1)] = 0.8
     emissive: Color3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+    base_color_texture: str | None = Field(
+        None, description="image file (sRGB, alpha used by MASK / BLEND), relative to the "
+        "config file; primitives' UVs span [0, 1] over each face")
+    alpha_mode: Literal["OPAQUE", "MASK", "BLEND"] = Field(
+        "OPAQUE", description="glTF alphaMode: MASK cuts out where alpha < alpha_cutoff (the "
+        "surface behind shows), BLEND composites front to back (render.alpha_layers deep)")
+    alpha_cutoff: Annotated[float, Field(ge=0, le=1)] = 0.5
+
+    @model_validator(mode="after")
+    def _cutoff_needs_mask(self) -> ObjectMaterialConfig:
+        if "alpha_cutoff" in self.model_fields_set and self.alpha_mode != "MASK":
+            raise ValueError("alpha_cutoff is used by alpha_mode MASK only")
+        return self
 
 
 class ObjectConfig(_Strict):
@@ -252,6 +265,11 @@ class RenderConfig(_Strict):
                                  description="drop back faces of every material")
     texture_filter: Literal["trilinear", "bilinear", "nearest"] = default_of(
         Renderer, "texture_filter")
+    alpha_layers: Annotated[int, Field(ge=1, le=16)] = Field(
+        default_of(Renderer, "alpha_layers"), description="depth layers for MASK / BLEND "
+        "materials (what lies behind the nearest K is not seen through them)")
+    antialias: bool = Field(default_of(Renderer, "antialias"), description="analytic "
+                            "antialiasing of silhouettes (gradients at edges)")
 
     @model_validator(mode="after")
     def _bounded(self) -> RenderConfig:
@@ -934,7 +952,8 @@ def build_renderer(cfg: RenderFile, with_environment: bool) -> Renderer:
                     cull_backfaces=r.cull_backfaces, background=r.background,
                     environment_background=bool(with_environment and cfg.environment
                                                 and cfg.environment.background),
-                    texture_filter=r.texture_filter, ssao=ssao)
+                    texture_filter=r.texture_filter, ssao=ssao, alpha_layers=r.alpha_layers,
+                    antialias=r.antialias)
 
 
 def parse_lights(data: object) -> list:

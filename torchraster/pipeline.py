@@ -100,7 +100,8 @@ def build_scene(cfg: RenderFile) -> RenderScene:
             parts.append(_file_part(cfg, obj.mesh, obj.transform, "auto", obj.cast_shadows,
                                     obj.receive_shadows))
         else:
-            parts.append(_primitive_part(obj, obj.name or f"{obj.primitive}{i}"))
+            parts.append(_primitive_part(obj, obj.name or f"{obj.primitive}{i}",
+                                         cfg.resolve("."), sc.max_texture_size))
     for part in parts:
         part.materials = [_override(mat, cfg) for mat in part.materials]
     return _merge(parts)
@@ -138,7 +139,8 @@ def _file_part(cfg: RenderFile, relative: str, transform: TransformConfig, norma
                  list(materials), node_cast & cast, node_receive & receive)
 
 
-def _primitive_part(obj: ObjectConfig, name: str) -> _Part:
+def _primitive_part(obj: ObjectConfig, name: str, base_dir: Path,
+                    max_texture: int | None) -> _Part:
     """A plane, box or sphere of ``obj.size`` with its material, in world space."""
     import trimesh
 
@@ -157,20 +159,30 @@ def _primitive_part(obj: ObjectConfig, name: str) -> _Part:
         if obj.primitive == "box":
             mesh = flat_mesh(mesh)  # sharp edges: one normal per face
             positions, faces, normals = mesh.positions, mesh.faces, mesh.normals
+            # each face projected along its axis: [0, 1]^2 over the face
+            axis = normals.abs().argmax(-1, keepdim=True)
+            keep = torch.tensor([[1, 2], [0, 2], [0, 1]]).index_select(0, axis.flatten())
+            uvs = torch.gather(positions, 1, keep) / s + 0.5
         else:
             positions, faces = mesh.positions, mesh.faces
             normals = torch.nn.functional.normalize(positions, dim=-1)
-        uvs = None
+            # latitude-longitude
+            uvs = torch.stack([0.5 + torch.atan2(normals[:, 0], normals[:, 2]) / (2 * math.pi),
+                               0.5 + torch.asin(normals[:, 1].clamp(-1, 1)) / math.pi], -1)
     m = _transform_matrix(obj.transform)
     positions = positions.float() @ m[:3, :3].T + m[:3, 3]
     normals = torch.nn.functional.normalize(normals.float() @ torch.linalg.inv(m[:3, :3]),
                                             dim=-1)
     mc = obj.material or ObjectMaterialConfig()
     rgba = list(mc.base_color) + ([1.0] if len(mc.base_color) == 3 else [])
+    texture = None
+    if mc.base_color_texture is not None:
+        texture = load_texture(base_dir.joinpath(mc.base_color_texture), max_size=max_texture)
     material = Material(name=mc.name or f"object:{name}", base_color_factor=torch.tensor(rgba),
-                        metallic_factor=mc.metallic, roughness_factor=mc.roughness,
-                        emissive_factor=torch.tensor(mc.emissive),
-                        double_sided=obj.primitive == "plane")
+                        base_color_texture=texture, metallic_factor=mc.metallic,
+                        roughness_factor=mc.roughness, emissive_factor=torch.tensor(mc.emissive),
+                        alpha_mode=mc.alpha_mode, alpha_cutoff=mc.alpha_cutoff,
+                        double_sided=obj.primitive == "plane" or mc.alpha_mode != "OPAQUE")
     n_faces = faces.shape[0]
     return _Part(positions, faces, normals, uvs, None,
                  torch.zeros(n_faces, dtype=torch.int64), [material],

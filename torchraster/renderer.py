@@ -31,7 +31,7 @@ from ._validate import check_resolution, check_tensor
 from .gbuffer import CHANNELS, GBuffer, MipCache, check_channels, geometry_pass
 from .mesh import transform_points, vertex_normals
 from .numerics import safe_normalize
-from .raster import rasterize
+from .raster import antialias, antialias_topology, rasterize
 from .scene import RenderScene, as_render_scene
 from .shading.ibl import Environment, shade_ibl
 from .shading.lighting import shade
@@ -43,6 +43,13 @@ from .shading.shadows import (
     local_views,
     render_shadow_maps,
     shadow_visibility,
+)
+from .transparency import (
+    composite_over,
+    face_alpha_modes,
+    first_opaque,
+    layer_opacity,
+    select_layers,
 )
 
 log = logging.getLogger("torchraster")
@@ -87,6 +94,10 @@ class RenderPlan:
             face casts and some face receives).
         shadow_maps: what the shadow pass rendered (views and sizes), filled in by
             ``forward`` (cascades that cover nothing are skipped there).
+        layers: depth layers rasterized (> 1 for glTF ``MASK`` / ``BLEND`` materials).
+        alpha: ``"none"``, ``"mask"`` (cut-outs: the first opaque layer is shaded) or
+            ``"blend"`` (every layer shaded and composited front to back).
+        antialias: silhouettes antialiased analytically (:func:`~torchraster.antialias`).
 
     Iterating a plan yields its human-readable :attr:`steps`.
     """
@@ -104,12 +115,16 @@ class RenderPlan:
     derivatives: bool
     shadow_lights: tuple[tuple[str, tuple[int, ...], ShadowSettings], ...] = ()
     shadow_maps: tuple[str, ...] = ()
+    layers: int = 1
+    alpha: str = "none"
+    antialias: bool = False
 
     @property
     def steps(self) -> list[str]:
         """The passes in order, e.g. ``["rasterize 64x64", "gbuffer albedo,mask", ...]``."""
         cull = "" if self.cull == "none" else f" (cull {self.cull} back faces)"
-        steps = [f"rasterize {self.resolution[0]}x{self.resolution[1]}{cull}",
+        layers = f" {self.layers} layers" if self.layers > 1 else ""
+        steps = [f"rasterize {self.resolution[0]}x{self.resolution[1]}{layers}{cull}",
                  "gbuffer " + ",".join(sorted(self.channels))]
         if self.shading == "pbr":
             if self.shadow_maps:
@@ -121,8 +136,14 @@ class RenderPlan:
             steps += ["ssao"] * self.ssao + ["ibl"] * self.ibl
         else:
             steps.append(self.shading)
+        if self.alpha == "mask":
+            steps.append("alpha mask (first opaque layer)")
+        elif self.alpha == "blend":
+            steps.append(f"blend {self.layers} layers front to back")
         if self.background != "none":
             steps.append(f"background {self.background}")
+        if self.antialias:
+            steps.append("antialias")
         if self.supersample > 1:
             steps.append(f"downsample {self.supersample}x")
         return steps
@@ -220,6 +241,12 @@ class Renderer(nn.Module):
         mip_cache_bytes: bound of the cache of constant textures' mip pyramids.
         shadows: render shadow maps for lights with ``cast_shadows`` (False: no shadow
             pass at all, whatever the lights say).
+        alpha_layers: depth layers rasterized when a material's ``alpha_mode`` is ``MASK``
+            or ``BLEND`` (surfaces behind the K nearest are not seen through cut-outs or
+            blended surfaces; shadow maps ignore alpha: cut-outs cast solid shadows).
+        antialias: blend colours and coverage across silhouette edges by the sub-pixel
+            position of the edge (:func:`~torchraster.antialias`), which gives gradients
+            with respect to geometry and camera at silhouettes (``out.alpha`` too).
         shadow_settings: the :class:`~torchraster.shading.shadows.ShadowSettings` of
             shadow-casting lights that carry none of their own (``lights.<kind>.shadow``).
 
@@ -242,6 +269,8 @@ class Renderer(nn.Module):
         mip_cache_bytes: int = 512 * 2**20,
         shadows: bool = True,
         shadow_settings: ShadowSettings | None = None,
+        alpha_layers: int = 4,
+        antialias: bool = False,
     ) -> None:
         super().__init__()
         self.resolution = check_resolution(resolution)
@@ -272,6 +301,11 @@ class Renderer(nn.Module):
                             f"{type(shadow_settings).__name__}")
         self.shadows = bool(shadows)
         self.shadow_settings = shadow_settings or ShadowSettings()
+        if isinstance(alpha_layers, bool) or not isinstance(alpha_layers, int) or not (
+                1 <= alpha_layers <= 16):
+            raise ValueError(f"alpha_layers: expected an int in [1, 16], got {alpha_layers!r}")
+        self.alpha_layers = alpha_layers
+        self.antialias = bool(antialias)
 
     def plan(self, scene: RenderScene, lights: Lights | None = None,
              environment: Environment | None = None, channels: Iterable[str] = ()
@@ -289,7 +323,6 @@ class Renderer(nn.Module):
         if environment is not None and not isinstance(environment, Environment):
             raise TypeError(f"environment: expected a torchraster.Environment or None, got "
                             f"{type(environment).__name__}")
-        _warn_unsupported_materials(scene)
         shading = self.shading
         if shading == "pbr" and lights is None and environment is None:
             warnings.warn("Renderer(shading='pbr') got no lights and no environment: rendering "
@@ -297,7 +330,11 @@ class Renderer(nn.Module):
                           "shading='unlit' to say so.", stacklevel=3)
             shading = "unlit"
         ssao = self.ssao is not None and shading == "pbr"
+        modes = {m.alpha_mode for m in scene.materials if m is not None}
+        alpha = "blend" if "BLEND" in modes else "mask" if "MASK" in modes else "none"
         channels = set(requested) | _SHADING_NEEDS[shading] | ({"depth"} if ssao else set())
+        if alpha != "none":
+            channels.add("alpha")
         light_kinds = []
         if shading == "pbr" and lights is not None:
             if lights.ambient is not None:
@@ -326,7 +363,8 @@ class Renderer(nn.Module):
             lights=tuple(light_kinds), ssao=ssao,
             ibl=shading == "pbr" and environment is not None, background=background, cull=cull,
             derivatives=textured and self.texture_filter == "trilinear",
-            shadow_lights=shadow_lights)
+            shadow_lights=shadow_lights, layers=self.alpha_layers if alpha != "none" else 1,
+            alpha=alpha, antialias=self.antialias)
 
     def _plan_shadows(self, scene: RenderScene, lights: Lights
                       ) -> tuple[tuple[str, tuple[int, ...], ShadowSettings], ...]:
@@ -391,30 +429,69 @@ class Renderer(nn.Module):
             face_ranges = face_ranges.expand(b, 2)
         frags = rasterize(clip, scene.faces, plan.resolution,
                           cull_backfaces=_cull_mask(plan, scene), face_ranges=face_ranges,
-                          derivatives=plan.derivatives)
+                          derivatives=plan.derivatives, layers=plan.layers)
         normals = scene.normals
         if "normal" in plan.channels and normals is None:
             normals = vertex_normals(positions, scene.faces)
-        gb = geometry_pass(frags, plan.channels, positions=positions, view=view,
-                           normals=normals, uvs=scene.uvs, tangents=scene.tangents,
-                           face_material=scene.face_material, materials=scene.materials,
-                           texture_filter=self.texture_filter, mip_cache=self.mip_cache)
+        layers = frags.layers if plan.layers > 1 else (frags,)
+        gbs = [geometry_pass(f, plan.channels, positions=positions, view=view,
+                             normals=normals, uvs=scene.uvs, tangents=scene.tangents,
+                             face_material=scene.face_material, materials=scene.materials,
+                             texture_filter=self.texture_filter, mip_cache=self.mip_cache)
+               for f in layers]
         eye = camera_position(view.to(positions.dtype))
-        visibility = None
+        groups = None
         if plan.shadow_lights:
-            visibility, rendered = self._shadow_pass(plan, scene, frags, gb, view, proj, lights,
-                                                     b, face_ranges)
-            plan = replace(plan, shadow_maps=rendered)
-        radiance = self._shade(plan, gb, view, proj, eye, lights, environment, visibility)
-        mask = gb.mask
-        radiance = radiance * mask
+            groups, lights_b = self._shadow_maps(plan, scene, view, proj, lights, b, face_ranges)
+            plan = replace(plan, shadow_maps=tuple(st for g in groups for st in g.steps))
+
+        def radiance_of(gb: GBuffer, face_id: torch.Tensor) -> torch.Tensor:
+            hook = None if groups is None else self._shadow_hook(groups, lights_b, scene, gb,
+                                                                 face_id, view, b)
+            return self._shade(plan, gb, view, proj, eye, lights, environment, hook) * gb.mask
+
+        if plan.alpha == "none":
+            gb = gbs[0]
+            radiance, coverage = radiance_of(gb, frags.face_id), gb.mask
+            transmittance = 1 - coverage
+        else:
+            modes, cutoffs = face_alpha_modes(scene.materials, scene.face_material,
+                                              scene.faces.shape[0], positions.device)
+            opacity = [layer_opacity(g, f.face_id, modes, cutoffs) for g, f in zip(
+                gbs, layers, strict=True)]
+            if plan.alpha == "mask":
+                first = first_opaque(opacity)
+                gb = select_layers(gbs, first)
+                fid = torch.gather(torch.stack([f.face_id for f in layers]), 0,
+                                   first.squeeze(1).unsqueeze(0))[0]
+                coverage = torch.gather(torch.stack(opacity), 0, first.unsqueeze(0))[0]
+                radiance = radiance_of(gb, fid) * coverage
+                transmittance = 1 - coverage
+            else:
+                colors, used = [], []
+                transmittance = torch.ones_like(opacity[0])
+                for g, f, a in zip(gbs, layers, opacity, strict=True):
+                    if not bool((transmittance * a > 0).any()):
+                        break  # everything behind is hidden
+                    colors.append(radiance_of(g, f.face_id))
+                    used.append(a)
+                    transmittance = transmittance * (1 - a)
+                radiance, transmittance = composite_over(colors, used)
+                gb = select_layers(gbs, first_opaque(opacity))
         if plan.background == "environment":
             rays = view_rays(view, proj, plan.resolution).to(radiance.dtype)
             background = environment.background(rays)
         else:
             background = self.background.to(radiance).view(1, 3, 1, 1)
-        image = radiance + (1 - mask) * background
-        alpha = mask * gb.alpha if gb.alpha is not None else mask
+        image = radiance + transmittance * background
+        if plan.alpha != "none":
+            alpha = 1 - transmittance
+        else:
+            alpha = gb.mask * gb.alpha if gb.alpha is not None else gb.mask
+        if plan.antialias:
+            topology = antialias_topology(scene.faces)
+            image = antialias(image, frags, clip, scene.faces, topology=topology)
+            alpha = antialias(alpha, frags, clip, scene.faces, topology=topology)
         outputs = GBuffer(**{ch: getattr(gb, ch) for ch in plan.requested})
         if plan.supersample > 1:
             s = plan.supersample
@@ -422,11 +499,11 @@ class Renderer(nn.Module):
             outputs = outputs.downsample(s)
         return RenderOutput(image=image, alpha=alpha, gbuffer=outputs.as_dict(), plan=plan)
 
-    def _shadow_pass(self, plan: RenderPlan, scene: RenderScene, frags, gb: GBuffer,
-                     view: torch.Tensor, proj: torch.Tensor, lights: Lights, b: int,
-                     face_ranges: torch.Tensor | None):
-        """Render the planned shadow maps and return (the ``shade`` visibility hook, the
-        steps that ran)."""
+    def _shadow_maps(self, plan: RenderPlan, scene: RenderScene, view: torch.Tensor,
+                     proj: torch.Tensor, lights: Lights, b: int,
+                     face_ranges: torch.Tensor | None) -> tuple[list[ShadowMaps], Lights]:
+        """Render the planned shadow maps (one batched pass per map size); returns the
+        groups and the lights expanded to the batch."""
         positions = scene.positions
         faces = scene.faces
         cast = scene.cast_shadows
@@ -453,11 +530,16 @@ class Renderer(nn.Module):
             g.lights = list(ids)
             groups.append(g)
         render_shadow_maps(groups, positions, faces, face_ranges)
+        return groups, lights
+
+    def _shadow_hook(self, groups: list[ShadowMaps], lights: Lights, scene: RenderScene,
+                     gb: GBuffer, face_id: torch.Tensor, view: torch.Tensor, b: int):
+        """The ``shade`` visibility hook of the surfaces in ``gb`` (face ids ``face_id``)."""
         receive = gb.mask > 0
         if scene.receive_shadows is not None:
-            flags = scene.receive_shadows.to(frags.face_id.device)
-            fid = frags.face_id
-            receive = receive & flags[fid.clamp_min(0)].unsqueeze(1) & (fid >= 0).unsqueeze(1)
+            flags = scene.receive_shadows.to(face_id.device)
+            receive = receive & flags[face_id.clamp_min(0)].unsqueeze(1) & (
+                face_id >= 0).unsqueeze(1)
         full: dict[str, torch.Tensor] = {}
         for g in groups:
             vis = shadow_visibility(g, gb.position, safe_normalize(gb.normal, dim=1), receive,
@@ -471,7 +553,7 @@ class Renderer(nn.Module):
         def hook(kind: str, sl: slice) -> torch.Tensor | None:
             return full[kind][:, sl] if kind in full else None
 
-        return hook, tuple(step for g in groups for step in g.steps)
+        return hook
 
     def _shade(self, plan: RenderPlan, gb: GBuffer, view: torch.Tensor, proj: torch.Tensor,
                eye: torch.Tensor, lights: Lights | None,
@@ -524,19 +606,6 @@ def _cull_mask(plan: RenderPlan, scene: RenderScene) -> bool | torch.Tensor:
     if scene.face_material is None:
         return single[:1].expand(scene.faces.shape[0])
     return single.index_select(0, scene.face_material.to(single.device))
-
-
-_WARNED: set[tuple] = set()
-
-
-def _warn_unsupported_materials(scene: RenderScene) -> None:
-    """Say once per material what the renderer does not do yet (glTF alpha modes)."""
-    for m in scene.materials:
-        if m is not None and m.alpha_mode != "OPAQUE" and (m.name, m.alpha_mode) not in _WARNED:
-            _WARNED.add((m.name, m.alpha_mode))
-            warnings.warn(f"material {m.name!r}: alpha_mode {m.alpha_mode!r} (alpha_cutoff "
-                          f"{m.alpha_cutoff}) is not implemented yet; rendered as OPAQUE",
-                          NotImplementedWarning, stacklevel=4)
 
 
 __all__ = ["CHANNELS", "NotImplementedWarning", "RenderOutput", "RenderPlan", "RenderScene",

@@ -11,6 +11,12 @@ is lit by a light when the segment (or ray) from it to the light crosses no cast
   position and facing the receiver (point / spot), or a cone of angular diameter ``angle``
   degrees around ``-direction`` (directional: a disc at infinity, e.g. the sun's 0.53 deg).
 
+Comparing with the engine (:func:`render_shadow_factor`, :func:`reference_for`,
+:func:`mask_stats`; the only functions here that import ``torchraster``, lazily): the
+engine's shadow factor of a pixel is the ratio of a render with shadows to the same render
+without (one light, no ambient), read through the public ``Renderer``; the reference traces
+rays from the same G-buffer positions and normals.
+
 Ray epsilon: each ray starts at ``point + eps * normal`` (``eps`` = :data:`RAY_EPSILON`,
 1e-4 m for metre-scale scenes; scale it with the scene) and every triangle hit with
 ``0 < t < t_max`` occludes; ``t_max`` is the distance to the light (``inf`` for directional
@@ -27,6 +33,7 @@ bounded by ``max_pairs`` pairs per step.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 
@@ -341,5 +348,114 @@ def mask_stats(ours: torch.Tensor, ref: torch.Tensor, valid: torch.Tensor, band:
             "n_lit": n_lit, "n_shadow": n_shadow, "n_acne": n_acne, "n_peter": n_peter}
 
 
-__all__ = ["RAY_EPSILON", "area_shadow_rays", "disc_samples", "ground_scene", "mask_stats",
-           "occluded", "shadow_rays"]
+# ------------------------------------------------------------- the engine side of a comparison
+
+#: Lights of the sphere-on-a-plane scenes of the tests and benchmarks (metres, radians).
+LIGHTS = {"directional": {"direction": (-1.0, -2.0, -0.5)},
+          "spot": {"position": (1.0, 2.5, 0.5), "direction": (-1.0, -2.5, -0.5), "cone": 0.8},
+          "point": {"position": (1.0, 1.6, 0.5)}}
+
+
+def make_lights(kind: str, settings=None, *, direction=None, position=None, cone=None,
+                cast: bool = True, count: int = 1, batch: int = 1):
+    """``torchraster.Lights`` with ``count`` identical lights of ``kind`` (defaults:
+    :data:`LIGHTS`) casting shadows (``cast``) with ``settings`` (a ``ShadowSettings``)."""
+    import torchraster as tr  # noqa: PLC0415 (the reference itself never imports the engine)
+
+    spec = dict(LIGHTS[kind])
+    spec.update({k: v for k, v in (("direction", direction), ("position", position),
+                                   ("cone", cone)) if v is not None})
+
+    def full(value) -> torch.Tensor:
+        return torch.tensor(value, dtype=torch.float32).expand(batch, count, *(
+            (len(value),) if isinstance(value, (tuple, list)) else ())).clone()
+
+    common = {"color": full((1.0, 1.0, 1.0)), "shadow": settings,
+              "cast_shadows": torch.full((batch, count), cast)}
+    if kind == "directional":
+        part = tr.DirectionalLights(direction=full(spec["direction"]), intensity=full(3.0),
+                                    **common)
+    elif kind == "spot":
+        part = tr.SpotLights(position=full(spec["position"]), direction=full(spec["direction"]),
+                             intensity=full(10.0), outer_cone_angle=full(spec["cone"]), **common)
+    else:
+        part = tr.PointLights(position=full(spec["position"]), intensity=full(5.0), **common)
+    return tr.Lights(**{kind: part})
+
+
+def ray_light(lights) -> dict[str, torch.Tensor]:
+    """The first light of ``lights`` as :func:`shadow_rays` keywords (``direction`` or
+    ``light_position``, ``(3,)``)."""
+    if lights.directional is not None:
+        return {"direction": lights.directional.direction[0, 0]}
+    return {"light_position": (lights.spot or lights.point).position[0, 0]}
+
+
+@dataclass
+class Shot:
+    """The shadow factor of one render.
+
+    Attributes:
+        vis: ``(H, W)`` the engine's visibility (1 where not ``valid``).
+        valid: ``(H, W)`` bool: receivers the light reaches with ``n . l > min_cos``.
+        position, normal: ``(3, H, W)`` the G-buffer.
+        plan: the render's ``RenderPlan``; image: ``(3, H, W)`` the shadowed render.
+    """
+
+    vis: torch.Tensor
+    valid: torch.Tensor
+    position: torch.Tensor
+    normal: torch.Tensor
+    plan: object
+    image: torch.Tensor
+
+
+def render_shadow_factor(positions: torch.Tensor, faces: torch.Tensor, cast: torch.Tensor,
+                         lights, view: torch.Tensor, proj: torch.Tensor, res: int = 256,
+                         receive: torch.Tensor | None = None, min_cos: float = 0.1) -> Shot:
+    """Render a white dielectric scene (``(V, 3)``, ``(F, 3)``, ``cast`` ``(F,)``) with one
+    light with and without shadows; the visibility is their ratio where the unshadowed
+    radiance is > 0 and ``n . l > min_cos`` (at the terminator a tessellated caster shadows
+    itself in the reference, which biases deliberately hide)."""
+    import torchraster as tr  # noqa: PLC0415
+
+    material = tr.Material(metallic_factor=0.0, roughness_factor=0.8)
+    scene = tr.RenderScene(positions, faces, materials=[material], cast_shadows=cast,
+                           receive_shadows=receive)
+    with torch.no_grad():
+        on = tr.Renderer(res)(scene, view, proj, lights, channels={"position", "normal"})
+        off = tr.Renderer(res, shadows=False)(scene, view, proj, lights)
+    a, b = on.image[0].mean(0), off.image[0].mean(0)
+    p, n = on.gbuffer["position"][0], on.gbuffer["normal"][0]
+    light = ray_light(lights)
+    if "direction" in light:
+        to_light = -light["direction"].view(3, 1, 1).expand_as(p)
+    else:
+        to_light = light["light_position"].view(3, 1, 1) - p
+    to_light = to_light / to_light.norm(dim=0, keepdim=True).clamp_min(1e-12)
+    valid = (b > 1e-6 * b.max()) & ((n * to_light).sum(0) > min_cos)
+    vis = torch.where(valid, a / b.clamp_min(1e-30), torch.ones_like(a))
+    return Shot(vis, valid, p, n, on.plan, on.image[0])
+
+
+def reference_for(shot: Shot, lights, positions: torch.Tensor, faces: torch.Tensor, *,
+                  radius: float | None = None, angle: float | None = None,
+                  samples: int = 36) -> torch.Tensor:
+    """Ray-traced ``(H, W)`` float64 visibility at the valid pixels of ``shot`` (1 elsewhere)
+    by the casters ``faces``: hard, or of an area light (disc ``radius`` / cone ``angle``)."""
+    m = shot.valid.flatten()
+    pts = shot.position.permute(1, 2, 0).reshape(-1, 3)[m]
+    nrm = shot.normal.permute(1, 2, 0).reshape(-1, 3)[m]
+    out = torch.ones(m.numel(), dtype=F64)
+    light = ray_light(lights)
+    if radius is None and angle is None:
+        out[m] = shadow_rays(pts, nrm, positions, faces, **light)
+    else:
+        size = {"angle": angle} if angle is not None else {"radius": radius}
+        out[m] = area_shadow_rays(pts, nrm, positions, faces, samples=samples, **size, **light)
+    return out.view(shot.valid.shape)
+
+
+__all__ = ["LIGHTS", "RAY_EPSILON", "Shot", "area_shadow_rays", "disc_samples", "ground_scene",
+           "make_lights", "mask_stats", "occluded", "ray_light", "reference_for",
+           "render_shadow_factor", "shadow_rays"]
