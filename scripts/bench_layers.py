@@ -149,7 +149,8 @@ def main() -> None:
         "the plain result (checked). \"x plain if re-binned\" is the least that peeling by "
         "re-running the whole rasterizer once per layer would cost. The convex icosphere has "
         "two layers wherever it covers (a third on a pixel or two of its silhouette, where "
-        "float32 projection is not exactly convex); Spot has up to 8 at a few pixels.\n\n"
+        "float32 projection is not exactly convex); Spot has up to 8 at a few pixels. The "
+        "K = 1 rows do the same work as plain: their ratio shows the noise of the run.\n\n"
         + layers
         + "\n\n`soft_rasterize` (SoftRas-style coverage `sigmoid(d / sigma)`, the 8 nearest "
         "faces within the cut-off distance 9.2 sigma, back faces kept) bins every triangle "

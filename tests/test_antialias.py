@@ -144,7 +144,8 @@ def disc(n: int, cx: float, cy: float, r: float, z: float = 0.0, phase: float = 
     return ndc_clip(xy, z), faces
 
 
-def sphere(res_deg: float = 25.0, subdivisions: int = 2, distance: float = 3.2):
+def sphere(subdivisions: int = 2, distance: float = 3.2):
+    """An icosphere seen by a perspective camera: clip (1, V, 4) float64, faces (F, 3)."""
     ico = trimesh.creation.icosphere(subdivisions=subdivisions)
     verts = torch.tensor(ico.vertices, dtype=torch.float64)
     faces = torch.tensor(ico.faces, dtype=torch.int64)
@@ -464,19 +465,19 @@ def test_quad_diagonal_blends_only_when_folded() -> None:
 
 
 def test_output_contract_on_a_vertical_edge() -> None:
-    """A half-plane x < e: horizontal pairs across e blend by exactly |t - 1/2|."""
+    """A half-plane x < e: every horizontal pair across e blends by exactly |t - 1/2|
+    (a vertical edge belongs to the horizontal pairs alone: share 1)."""
     res = (4, 8)
-    for e_px, target, weight in ((4.3, 4, 0.3 - 0.5 + 0.5), (3.8, 3, 0.2)):
+    # pixel centres at j + 0.5: an edge at 4.3 px leaves pixel 3 at t = 0.8, so pixel 4
+    # takes 0.3 of it; one at 3.8 px leaves pixel 3 at t = 0.3, which keeps 1 - 0.2
+    for e_px, target, value in ((4.3, 4, 0.3), (3.8, 3, 0.8)):
         e = 2 * e_px / res[1] - 1
         clip = ndc_clip(torch.tensor([[-3.0, -3.0], [e, -3.0], [e, 3.0], [-3.0, 3.0]]))
         faces = torch.tensor([[0, 1, 2], [0, 2, 3]])
         frags = tr.rasterize(clip, faces, res)
-        out = tr.antialias(frags.mask, frags, clip, faces)[0, 0]
-        # centres at j + 0.5: the edge at 4.3 leaves pixel 3 (centre 3.5) at t = 0.8 ->
-        # pixel 4 takes 0.3; at 3.8: t = 0.3 -> pixel 3 keeps 1 - 0.2
-        expect = torch.zeros(res[1], dtype=torch.float64)
-        expect[:int(e_px - 0.5) + 1] = 1.0
-        expect[target] = weight if target == 4 else 1 - weight
+        out = tr.antialias(frags.mask.double(), frags, clip, faces)[0, 0]
+        expect = (torch.arange(res[1]) + 0.5 < e_px).double()
+        expect[target] = value
         assert torch.allclose(out, expect.expand(res[0], -1), atol=1e-12), out
 
 
@@ -484,10 +485,12 @@ def test_batch_broadcast_and_memory_budget_invariance() -> None:
     c1, faces = sphere()
     c2, _ = sphere(distance=2.7)
     clip = torch.cat([c1, c2]).float()
-    res = (32, 32)
+    res = (64, 64)
     frags = tr.rasterize(clip, faces, res)
     color = torch.rand(2, 3, *res)
     out = tr.antialias(color, frags, clip, faces)
+    pairs = int((frags.face_id[:, :, 1:] != frags.face_id[:, :, :-1]).sum())
+    assert pairs > 2 * 256  # memory_budget=1 walks chunks of the smallest size, 256 pairs
     small = tr.antialias(color, frags, clip, faces, memory_budget=1)
     assert torch.equal(out, small)
     for i in range(2):

@@ -165,7 +165,7 @@ def antialias(
     b, _, h, w = color.shape
     if clip_pos.dtype != torch.float64:
         clip_pos = clip_pos.float()
-    per_chunk = max(1024, int(memory_budget) // (_BYTES_PER_PAIR * clip_pos.element_size() // 4))
+    per_chunk = max(256, int(memory_budget) // (_BYTES_PER_PAIR * clip_pos.element_size() // 4))
     depth: list[torch.Tensor] = []  # frags.depth, built only if two walks both hit
 
     def depth_at(pix: torch.Tensor) -> torch.Tensor:
@@ -176,6 +176,7 @@ def antialias(
     records = []
     with torch.no_grad():
         ids = fid.reshape(-1)
+        clip_t = clip_pos.detach().permute(2, 0, 1).reshape(4, -1)  # (4, B*V) rows
         for axis in (0, 1):  # 0: horizontal pairs (x, x + 1), 1: vertical (x, x + W)
             diff = torch.zeros((b, h, w), dtype=torch.bool, device=fid.device)
             if axis == 0:
@@ -186,17 +187,19 @@ def antialias(
             del diff
             for k0 in range(0, first.numel(), per_chunk):
                 p = first[k0:k0 + per_chunk]
-                records.append(_pick_pairs(clip_pos, faces, topology, ids, depth_at, p,
-                                           p + (1 if axis == 0 else w), axis, (h, w)))
+                records.append(_pick_pairs(clip_t, clip_pos.shape, faces, topology, ids,
+                                           depth_at, p, p + (1 if axis == 0 else w), axis,
+                                           (h, w)))
     if records:
-        o, n, item, face, edge, axis, far = (torch.cat(v) for v in zip(*records, strict=True))
+        o, n, item, face, edge, axis, past_mid = (torch.cat(v)
+                                                  for v in zip(*records, strict=True))
     else:
         o = n = item = face = edge = axis = torch.zeros(0, dtype=torch.int64,
                                                         device=fid.device)
-        far = torch.zeros(0, dtype=torch.bool, device=fid.device)
+        past_mid = torch.zeros(0, dtype=torch.bool, device=fid.device)
     t, share = _crossing(clip_pos, faces, o, n, item, face, edge, axis, (h, w))
-    weight = torch.where(far, t - 0.5, 0.5 - t).clamp_min(0) * share
-    return _blend(color, torch.where(far, n, o), torch.where(far, o, n), weight)
+    weight = torch.where(past_mid, t - 0.5, 0.5 - t).clamp_min(0) * share
+    return _blend(color, torch.where(past_mid, n, o), torch.where(past_mid, o, n), weight)
 
 
 def _blend(color: torch.Tensor, target: torch.Tensor, source: torch.Tensor,
@@ -348,7 +351,7 @@ def _walk(clip_t, faces, topology, vert_base, face, goal, o, n, axis, resolution
     Returns (hit, reached, face, edge, t, blend), each (N,): ``hit`` the segment reaches a
     silhouette edge, ``edge`` of ``face``, at fraction ``t``; ``reached`` the walk entered
     ``goal`` first; ``blend`` the hit is between the near and far planes and the edge is
-    oriented for this pair's axis.
+    not parallel to the pair.
     """
     dtype, device = clip_t.dtype, o.device
     count = o.numel()
@@ -417,18 +420,41 @@ def _walk(clip_t, faces, topology, vert_base, face, goal, o, n, axis, resolution
     return hit, reached, face, edge, t_out, blend
 
 
-def _pick_pairs(clip_pos, faces, topology, fid, depth_at, p, q, axis, resolution):
-    """No-grad, one chunk of pairs (p, q) with different face ids: the blending records
-    (o, n, item, face, edge, axis, far_side) of the occluder of each pair.
+def _internal(clip_t, faces, topology, vert_base, fp, fq):
+    """(N,) bool: faces ``fp`` and ``fq`` share an edge that is not a fold (their other
+    vertices lie on opposite sides of it, seen from the eye)."""
+    slots = topology.index_select(0, fp.clamp_min(0))  # (N, 3)
+    across = (slots >= 0) & (floor_div_exact(slots.clamp_min(0), 3) == fq[:, None])
+    shared = across.any(1) & (fp >= 0)
+    idx = shared.nonzero().squeeze(1)
+    if idx.numel() == 0:
+        return shared
+    k = torch.where(across[idx, 0], 0, torch.where(across[idx, 1], 1, 2))
+    corner = faces.index_select(0, fp[idx]).T  # (3, n)
+    slot = slots[idx].gather(1, k[:, None]).squeeze(1)
+    other = faces.view(-1).index_select(0, slot - slot % 3 + (slot % 3 + 2) % 3)
+    base = vert_base[idx]
+    ids = torch.stack([_at(corner, k), _at(corner, (k + 1) % 3), _at(corner, (k + 2) % 3),
+                       other]) + base
+    x, y, _, w = _scaled(clip_t.index_select(1, ids.reshape(-1)).view(4, 4, -1))
+    line = _line((x[0], y[0], w[0]), (x[1], y[1], w[1]))
+    sides = torch.sign(_dot(line, (x[2], y[2], w[2]))) * torch.sign(_dot(line, (x[3], y[3], w[3])))
+    shared[idx] = sides < 0
+    return shared
 
-    The walk from p's face runs first; the one from q's face only where the first did not
-    reach q's face over internal edges (then both pixels show one connected surface and
-    nothing blends)."""
+
+def _pick_pairs(clip_t, clip_shape, faces, topology, fid, depth_at, p, q, axis, resolution):
+    """No-grad, one chunk of pairs (p, q) with different face ids: the blending records
+    (o, n, item, face, edge, axis, past_mid) of the occluder of each pair (past_mid:
+    the crossing is nearer to n's centre).
+
+    Pairs whose faces share an edge that is not a fold are internal (most pairs of a mesh
+    whose triangles are a few pixels wide) and skip the walks. The walk from p's face runs
+    first; the one from q's face only where the first did not reach q's face over internal
+    edges (then both pixels show one connected surface and nothing blends)."""
     h, w = resolution
-    n_vert = clip_pos.shape[1]
     item = floor_div_exact(p, h * w)
-    vert_base = (item if clip_pos.shape[0] > 1 else torch.zeros_like(item)) * n_vert
-    clip_t = clip_pos.detach().permute(2, 0, 1).reshape(4, -1)
+    vert_base = (item if clip_shape[0] > 1 else torch.zeros_like(item)) * clip_shape[1]
     fp, fq = fid.index_select(0, p), fid.index_select(0, q)
     m = p.numel()
     hit = torch.zeros(2 * m, dtype=torch.bool, device=p.device)
@@ -437,8 +463,8 @@ def _pick_pairs(clip_pos, faces, topology, fid, depth_at, p, q, axis, resolution
     t = torch.zeros(2 * m, dtype=clip_t.dtype, device=p.device)
     # rows [0, m): walks from p towards q; rows [m, 2m): from q towards p
     o, n, goal = torch.cat([p, q]), torch.cat([q, p]), torch.cat([fq, fp])
-    todo = (fp >= 0).nonzero().squeeze(1)
-    reached = torch.zeros(m, dtype=torch.bool, device=p.device)
+    reached = _internal(clip_t, faces, topology, vert_base, fp, fq)
+    todo = ((fp >= 0) & ~reached).nonzero().squeeze(1)
     for side in (0, 1):
         if side == 1:
             todo = ((fq >= 0) & ~reached).nonzero().squeeze(1) + m
@@ -479,7 +505,10 @@ def _crossing(clip_pos, faces, o, n, item, face, edge, axis, resolution):
     t, _ = _crossing_t(line, dx, dy)
     # the normal in pixel units is (2 L0 / W, -2 L1 / H)
     nx, ny = (line[0] * (1.0 / w)).abs(), (line[1] * (1.0 / h)).abs()
-    nx, ny = nx / torch.maximum(nx, ny), ny / torch.maximum(nx, ny)  # > 0 where blending
-    px, py = nx ** ORIENTATION_POWER, ny ** ORIENTATION_POWER
-    share = torch.where(axis == 0, px, py) / (px + py)
+    big = torch.maximum(nx, ny)
+    big = torch.where(big == 0, torch.ones_like(big), big)  # 0 only for degenerate lines
+    px, py = (nx / big) ** ORIENTATION_POWER, (ny / big) ** ORIENTATION_POWER
+    total = px + py  # >= 1 unless degenerate
+    share = torch.where(axis == 0, px, py) / torch.where(total == 0, torch.ones_like(total),
+                                                         total)
     return t.clamp(0.0, 1.0), share

@@ -1,4 +1,4 @@
-"""Visibility: the public ``rasterize`` (see DESIGN.md, "Public contract").
+"""Visibility: the public ``rasterize`` (see docs/design.md, "Public contract").
 
 Visibility first, attributes second:
 
