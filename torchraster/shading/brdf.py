@@ -18,6 +18,8 @@ import math
 
 import torch
 
+from torchraster.numerics import compute_dtype, finish_low_precision
+
 #: Smallest perceptual roughness (alpha = 0.045**2 ~ 2.0e-3). Filament's value: below it
 #: the GGX peak ``1 / (pi * alpha**2)`` (~7.8e4 here) grows past what float16 can hold,
 #: ``1 - (n.h)**2`` near the peak loses all precision in low-precision formats, and the
@@ -37,21 +39,8 @@ NORMALIZE_EPS: float = 1e-12
 #: Dielectric reflectance at normal incidence (4 %, IOR 1.5), used for f0 when metallic=0.
 DIELECTRIC_F0: float = 0.04
 
-_LOW_PRECISION = (torch.float16, torch.bfloat16)
 Scalar = float | torch.Tensor
 
-
-def _compute_dtype(*xs: object) -> torch.dtype:
-    """Promoted floating dtype of the tensor arguments, at least float32."""
-    dtype = torch.float32
-    tensors = [x for x in xs if isinstance(x, torch.Tensor)]
-    if tensors:
-        dtype = tensors[0].dtype
-        for t in tensors[1:]:
-            dtype = torch.promote_types(dtype, t.dtype)
-        if not dtype.is_floating_point or dtype in _LOW_PRECISION:
-            dtype = torch.float32
-    return dtype
 
 
 def _out_dtype(*xs: object) -> torch.dtype:
@@ -83,14 +72,6 @@ def _first_tensor(*xs: object) -> torch.Tensor:
     return torch.zeros(())
 
 
-def _finish(y: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-    """Cast to the output dtype, saturating to its finite range for float16 / bfloat16."""
-    if dtype in _LOW_PRECISION:
-        big = torch.finfo(dtype).max
-        y = y.clamp(-big, big)
-    return y.to(dtype)
-
-
 def _check_vector(name: str, x: object) -> torch.Tensor:
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
@@ -115,7 +96,7 @@ def safe_normalize(x: torch.Tensor, dim: int = -3) -> torch.Tensor:
     Any shape; float16 / bfloat16 are normalised in float32 and cast back.
     """
     dtype = x.dtype
-    xc = x.to(_compute_dtype(x))
+    xc = x.to(compute_dtype(x))
     sq = (xc * xc).sum(dim=dim, keepdim=True)
     ok = sq > NORMALIZE_EPS
     inv = torch.where(ok, torch.rsqrt(torch.where(ok, sq, 1.0)), 0.0)
@@ -147,13 +128,13 @@ def d_ggx(n_dot_h: torch.Tensor, roughness: Scalar) -> torch.Tensor:
     if not isinstance(n_dot_h, torch.Tensor) or not n_dot_h.is_floating_point():
         raise TypeError("n_dot_h: expected a floating-point torch.Tensor")
     out = _out_dtype(n_dot_h, roughness)
-    dt = _compute_dtype(n_dot_h, roughness)
+    dt = compute_dtype(n_dot_h, roughness)
     nh = n_dot_h.to(dt)
     a = _alpha(_as_tensor("roughness", roughness, nh, dt))
     c = nh.clamp(0.0, 1.0)
     k = a / (1.0 - c * c + (c * a) ** 2)
     d = k * k / math.pi
-    return _finish(torch.where(nh > 0, d, 0.0), out)
+    return finish_low_precision(torch.where(nh > 0, d, 0.0), out)
 
 
 def v_smith_ggx_correlated(
@@ -176,13 +157,13 @@ def v_smith_ggx_correlated(
         if not isinstance(x, torch.Tensor) or not x.is_floating_point():
             raise TypeError(f"{name}: expected a floating-point torch.Tensor")
     out = _out_dtype(n_dot_v, n_dot_l, roughness)
-    dt = _compute_dtype(n_dot_v, n_dot_l, roughness)
+    dt = compute_dtype(n_dot_v, n_dot_l, roughness)
     nv = n_dot_v.to(dt).clamp(MIN_COS, 1.0)
     nl = n_dot_l.to(dt).clamp(MIN_COS, 1.0)
     a2 = _alpha(_as_tensor("roughness", roughness, nv, dt)) ** 2
     ggx_v = nl * torch.sqrt(nv * nv * (1.0 - a2) + a2)
     ggx_l = nv * torch.sqrt(nl * nl * (1.0 - a2) + a2)
-    return _finish(0.5 / (ggx_v + ggx_l), out)
+    return finish_low_precision(0.5 / (ggx_v + ggx_l), out)
 
 
 def f_schlick(v_dot_h: torch.Tensor, f0: Scalar, f90: Scalar = 1.0) -> torch.Tensor:
@@ -199,13 +180,13 @@ def f_schlick(v_dot_h: torch.Tensor, f0: Scalar, f90: Scalar = 1.0) -> torch.Ten
     if not isinstance(v_dot_h, torch.Tensor) or not v_dot_h.is_floating_point():
         raise TypeError("v_dot_h: expected a floating-point torch.Tensor")
     out = _out_dtype(v_dot_h, f0, f90)
-    dt = _compute_dtype(v_dot_h, f0, f90)
+    dt = compute_dtype(v_dot_h, f0, f90)
     vh = v_dot_h.to(dt)
     f0t = _as_tensor("f0", f0, vh, dt)
     f90t = _as_tensor("f90", f90, vh, dt)
     m = 1.0 - vh.clamp(0.0, 1.0)
     m2 = m * m
-    return _finish(f0t + (f90t - f0t) * (m2 * m2 * m), out)
+    return finish_low_precision(f0t + (f90t - f0t) * (m2 * m2 * m), out)
 
 
 def fd_lambert() -> float:
@@ -251,7 +232,7 @@ def cook_torrance(
     for name, x in (("n", n), ("v", v), ("l", l)):
         _check_vector(name, x)
     out = _out_dtype(n, v, l, albedo, metallic, roughness)
-    dt = _compute_dtype(n, v, l, albedo, metallic, roughness)
+    dt = compute_dtype(n, v, l, albedo, metallic, roughness)
     n, v, l = n.to(dt), v.to(dt), l.to(dt)
     base = _as_tensor("albedo", albedo, n, dt)
     metal = _as_tensor("metallic", metallic, n, dt)
@@ -276,4 +257,4 @@ def cook_torrance(
     f = (1.0 - metal) * base * fd_lambert() + spec
     if include_cosine:
         f = f * n_dot_l.clamp(0.0, 1.0)
-    return _finish(f, out)
+    return finish_low_precision(f, out)
