@@ -130,7 +130,8 @@ def run(args: argparse.Namespace) -> dict:
         view = current()
         loss = pyramid_loss(renderer(mesh, view, proj).alpha, target, args.levels)
         opt.zero_grad()
-        loss.backward()
+        if loss.requires_grad:  # not with antialias=False: coverage is then constant
+            loss.backward()
         opt.step()
         sched.step()
         table.tock()

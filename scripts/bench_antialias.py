@@ -214,6 +214,41 @@ def quality(name: str, res: int, ss: int = 8) -> list:
             100 * (float(moment) / area - 1)]
 
 
+def renderer_rows(repeats: int) -> list:
+    """Full Renderer frame (Spot, PBR, one point light, batch 4) with antialias off / on:
+    forward and forward + backward to vertex positions, interleaved medians."""
+    import statistics
+
+    mesh = tr.load_spot()
+    view = tr.camera.orbit(torch.tensor([0.0, 60, 120, 200]), 15.0, 2.6)
+    proj = tr.camera.perspective(45.0, 1.0, 0.1)
+    lights = tr.Lights(point=tr.PointLights(position=torch.tensor([[[2.0, 2.0, 3.0]]]),
+                                            color=torch.ones(1, 1, 3),
+                                            intensity=torch.tensor([[20.0]])))
+    rows = []
+    for res in (256, 512):
+        for grad in (False, True):
+            times: dict[bool, list[float]] = {False: [], True: []}
+            for rep in range(repeats + 1):
+                for aa in (False, True):
+                    renderer = tr.Renderer(res, antialias=aa)
+                    pos = mesh.positions.clone().requires_grad_(grad)
+                    scene = tr.RenderScene(pos, mesh.faces, mesh.normals, mesh.uvs,
+                                           materials=[mesh.material])
+                    t = time.perf_counter()
+                    with torch.set_grad_enabled(grad):
+                        out = renderer(scene, view, proj, lights)
+                        if grad:
+                            (out.image.mean() + out.alpha.mean()).backward()
+                    if rep:  # the first round warms up
+                        times[aa].append(time.perf_counter() - t)
+            off, on = statistics.median(times[False]), statistics.median(times[True])
+            rows.append([f"{res}²", "forward + backward" if grad else "forward", off * 1e3,
+                         on * 1e3, on / off])
+            print(rows[-1], flush=True)
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=7)
@@ -221,6 +256,8 @@ def main() -> None:
     ap.add_argument("--no-write", action="store_true", help="print only")
     ap.add_argument("--picture", action="store_true",
                     help="only write docs/images/antialias.png")
+    ap.add_argument("--renderer", action="store_true",
+                    help="only the full-frame cost of Renderer(antialias=True)")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -229,6 +266,22 @@ def main() -> None:
         return
     from benchmd import markdown_table, update_section
 
+    if args.renderer:
+        rows = renderer_rows(args.repeats)
+        body = ("## Antialiasing in the renderer: `Renderer(antialias=True)`\n\n"
+                "The whole frame (Spot, 5,856 faces, PBR, one point light, batch 4: "
+                "rasterize, G-buffer, lighting, one antialias call on colour + alpha) with "
+                "antialias off and on; forward, and forward + backward of image and alpha "
+                f"means to the vertex positions. Medians of {args.repeats} interleaved "
+                "repeats after a warm-up round, one process (machine shared with other "
+                "jobs: compare the ratios). Antialias stays off by default: it adds "
+                f"{(min(r[4] for r in rows) - 1) * 100:.0f}-"
+                f"{(max(r[4] for r in rows) - 1) * 100:.0f} % to a frame; turn it on to "
+                "optimise geometry or cameras against silhouettes or edges.\n\n"
+                + markdown_table(["resolution", "pass", "off ms", "on ms", "on / off"], rows))
+        if not args.no_write:
+            update_section("antialias-renderer", body)
+        return
     rows = []
     header = ["mesh", "resolution", "batch", "pairs", "changed px", "rasterize ms",
               "antialias ms", "antialias / rasterize", "train step ms", "+ antialias ms",
@@ -261,7 +314,8 @@ def main() -> None:
         "`antialias(..., topology=antialias_topology(faces))` saves across calls). "
         "*train step*: rasterize -> interpolate -> sum, forward + backward to clip "
         "positions and colours; *+ antialias*: the same with antialias before the sum. "
-        f"Medians of {args.repeats} interleaved repeats after a warm-up, one process.\n\n"
+        f"Medians of {args.repeats} interleaved repeats after a warm-up, one process "
+        "(on a machine shared with other jobs: compare the ratios).\n\n"
         + markdown_table(header, rows)
         + "\n\nAccuracy against an 8x8 supersampled alpha (rasterize at 8x the resolution, "
         "box filter), batch 1: the mean absolute alpha error, and the gradient check of "

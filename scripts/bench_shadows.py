@@ -29,7 +29,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import trimesh
 from benchmd import markdown_table, update_section
 from PIL import Image, ImageDraw
 
@@ -51,28 +50,16 @@ def camera(eye=(0.0, 2.5, 4.0), target=(0.0, 0.3, 0.0), fov: float = 45.0):
     return tr.camera.look_at(list(eye), list(target)), tr.camera.perspective(fov, 1.0, 0.1)
 
 
-def sphere_scene():
-    s = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
-    v = torch.tensor(s.vertices) + torch.tensor([0.0, 0.5, 0.0])
-    return rt.ground_scene([(v, torch.tensor(s.faces))], 4.0)
+sphere_scene = rt.sphere_on_plane
 
 
-def field_scene(count: int = 14):
-    """Spheres 2-40 m ahead of a low camera over a 100 m plane (cascades)."""
-    s = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
-    gen = torch.Generator().manual_seed(1)
-    casters = []
-    for i in range(count):
-        z = -2.0 - 38.0 * (i / (count - 1)) ** 1.5
-        x = float(torch.rand(1, generator=gen) * 2 - 1) * (2 + 0.35 * -z)
-        r = 0.35 + 0.25 * float(torch.rand(1, generator=gen))
-        casters.append((torch.tensor(s.vertices) * r + torch.tensor([x, r, z]),
-                        torch.tensor(s.faces)))
-    return rt.ground_scene(casters, 100.0)
+def field_scene():
+    """14 spheres 2-40 m ahead of a low camera over a 100 m plane (cascades)."""
+    return rt.field_of_spheres(14)
 
 
-FIELD_CAMERA = camera((0.0, 1.7, 2.0), (0.0, 0.6, -10.0), 50.0)
-FIELD_SUN = (-0.5, -0.8, 0.3)
+FIELD_CAMERA = camera(*rt.FIELD_CAMERA)
+FIELD_SUN = rt.FIELD_SUN
 
 
 def shadow_time(scene, lights, view, proj, res: int, repeats: int) -> tuple[float, float]:
@@ -212,31 +199,15 @@ def soft(b: Bench, taps, blurs) -> tuple[str, list]:
     return markdown_table(header, rows), picks
 
 
-BIASES = ((1.0, 1.0, 1.0), (1.0, 1.0, 0.5), (1.0, 1.0, 0.0), (0.5, 0.5, 0.5), (2.0, 2.0, 1.0),
-          (2.0, 2.0, 0.5), (2.0, 2.0, 0.0), (3.0, 3.0, 1.0))
+BIASES = ((1.0, 1.0, 1.0), (1.0, 1.0, 0.5), (1.0, 1.0, 0.0), (1.0, 2.0, 0.0), (2.0, 2.0, 1.0),
+          (2.0, 2.0, 0.5))
 
 
 def grazing_acne(kind: str, st: ShadowSettings, elevation: float = 5.0) -> tuple[int, float]:
     """(pixels darker than 0.95, min visibility) of a casting + receiving plane lit at
-    ``elevation`` degrees (spot / point: pixels that see the light at least that high)."""
-    positions, faces, _ = rt.ground_scene([], 6.0)
-    cast = torch.ones(2, dtype=torch.bool)
-    e, a = math.radians(elevation), math.radians(30.0)
-    if kind == "directional":
-        lights = rt.make_lights(kind, st, direction=(-math.cos(e) * math.sin(a), -math.sin(e),
-                                                     -math.cos(e) * math.cos(a)))
-    else:
-        h = 3 * math.tan(e)
-        lights = rt.make_lights(kind, st, position=(-3.0, h, 0.0), direction=(1.0, -h / 3, 0.0),
-                                cone=1.2)
-    view, proj = camera((0.0, 3.0, 5.0), (0.0, 0.0, 0.0))
-    shot = rt.render_shadow_factor(positions, faces, cast, lights, view, proj, res=128,
-                                   min_cos=0.0)
-    valid = shot.valid
-    if kind != "directional":
-        to_light = rt.ray_light(lights)["light_position"].view(3, 1, 1) - shot.position
-        valid = valid & (to_light[1] / to_light.norm(dim=0) >= math.sin(e) - 1e-6)
-    vis = shot.vis[valid]
+    ``elevation`` degrees (``raytrace.grazing_plane_shot``)."""
+    shot = rt.grazing_plane_shot(kind, elevation, st)
+    vis = shot.vis[shot.valid]
     return int((vis < 0.95).sum()), float(vis.min())
 
 
@@ -246,7 +217,7 @@ def biases(b: Bench) -> tuple[str, list]:
         for filt in ("hard", "pcf", "pcss"):
             ious, acne, worst = [], 0, 1.0
             for kind in KINDS:
-                st = ShadowSettings(filter=filt, bias=bias, slope_bias=slope,
+                st = ShadowSettings(map_size=512, filter=filt, bias=bias, slope_bias=slope,
                                     normal_bias=normal, light_size=LIGHT_SIZE[kind])
                 shot = b.shot(rt.make_lights(kind, st), b.res)
                 ious.append(rt.mask_stats(shot.vis, b.hard[kind], shot.valid)["iou"])
@@ -257,8 +228,8 @@ def biases(b: Bench) -> tuple[str, list]:
             print(rows[-1], flush=True)
     return markdown_table(["bias / slope / normal (texels)", "filter"]
                           + [f"1 - IoU {k}" for k in KINDS]
-                          + ["acne px at 5 deg (all lights)", "min visibility at 5 deg"],
-                          rows), rows
+                          + ["acne px at 5 deg (all lights, < 0.95)",
+                             "min visibility at 5 deg"], rows), rows
 
 
 def light_counts(counts, batches, res: int, repeats: int) -> str:
@@ -282,7 +253,32 @@ def light_counts(counts, batches, res: int, repeats: int) -> str:
                 rows.append([kind, batch, n, t * 1e3, main * 1e3, t / main])
                 print(rows[-1], flush=True)
     return markdown_table(["light", "batch", "shadowed lights", "shadow pass ms",
-                           "main pass ms", "shadow / main"], rows)
+                           "main pass ms", "shadow / main"], rows), rows
+
+
+def findings(bias_rows: list, count_rows: list) -> str:
+    """What the tables say about the biases, PCSS and the cost (numbers of this run)."""
+    row = {(r[0], r[1]): r for r in bias_rows}
+    default = f"{DEFAULT.bias} / {DEFAULT.slope_bias} / {DEFAULT.normal_bias}"
+    base, better = row[(default, "pcf")], row[("1.0 / 2.0 / 0.0", "pcf")]
+    pcss = [r[-1] for r in bias_rows if r[1] == "pcss"]
+    ratios = [r[-1] for r in count_rows]
+    return (
+        f"* The hard-mask error is mostly the normal offset: it moves every lookup towards "
+        f"the light, so shadows shrink (1 - IoU at 512², PCF, directional / spot / point: "
+        f"{base[2]:.4f} / {base[3]:.4f} / {base[4]:.4f} with {default}; "
+        f"{better[2]:.4f} / {better[3]:.4f} / {better[4]:.4f} with bias 1, slope 2, "
+        f"normal 0, which also has no acne at 5 degrees).\n"
+        f"* PCSS darkens a tilted receiver that also casts (the plane at 5 degrees: minimum "
+        f"visibility {min(pcss):.2f}-{max(pcss):.2f} over the bias rows): its blocker search "
+        "and taps compare the map against the receiver's depth at its own position, so the "
+        "receiver's plane a few texels away is a blocker. A slope term that grows with each "
+        "tap's distance (receiver-plane bias) is missing.\n"
+        "* PCF and VSM are hard-shadow filters: against an area light only PCSS stays within "
+        f"{SOFT_OK} shadow-region MAE.\n"
+        f"* The shadow pass costs {min(ratios):.1f}-{max(ratios):.1f} times the main pass "
+        "(512² image, 512² maps, 1-16 lights, batch 1-4): cube maps of point lights (6 "
+        "views each) cost most.")
 
 
 def pick_defaults(size_ok: dict, soft_picks: list, bias_rows: list) -> str:
@@ -419,7 +415,7 @@ def main() -> None:
     cascade_table = cascades(b, (512, 1024) if not args.quick else (512,))
     soft_table, picks = soft(b, taps, blurs)
     bias_table, bias_rows = biases(b)
-    count_table = light_counts(counts, batches, 256 if args.quick else 512, b.repeats)
+    count_table, count_rows = light_counts(counts, batches, 256 if args.quick else 512, b.repeats)
     verdict = pick_defaults(size_ok, picks, bias_rows)
     took = time.perf_counter() - start
     body = f"""## Shadows: run time against error ({took:.0f} s)
@@ -449,7 +445,7 @@ pass), {b.repeats} interleaved repeats after a warm-up.
 
 {soft_table}
 
-### Biases (map 1024): IoU on the sphere, acne on a casting plane lit at 5 degrees
+### Biases (map 512): IoU on the sphere, acne on a casting plane lit at 5 degrees
 
 {bias_table}
 
@@ -457,7 +453,11 @@ pass), {b.repeats} interleaved repeats after a warm-up.
 
 {count_table}
 
-### Defaults
+### Findings
+
+{findings(bias_rows, count_rows)}
+
+### Defaults: the fastest setting within the stated error
 
 {verdict}
 """

@@ -147,3 +147,23 @@ def test_mip_cache_is_bounded_and_sees_in_place_edits():
     renderer(tr.RenderScene(pos, faces), VIEW, PROJ)
     cache.get(torch.zeros(1), lambda: None, torch.float32, torch.device("cpu"))
     assert len(cache) == 1  # the freed texture dropped out; the new one is in
+
+
+def test_antialias_gives_silhouette_gradients_to_geometry():
+    """d(sum alpha)/d(scale) of a square = 2 * area / scale (area in pixels ~ scale^2);
+    without antialias the coverage has no gradient at all."""
+    view = tr.camera.look_at([0.0, 0.0, 3.0], [0.0, 0.0, 0.0])
+    proj = tr.camera.perspective(40.0, 1.0, 0.1)
+    base = torch.tensor([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0],
+                         [-1.0, 1.0, 0.0]], dtype=torch.float64)
+    faces = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    scale = torch.tensor(0.37, dtype=torch.float64, requires_grad=True)
+    scene = tr.RenderScene(base * scale, faces)
+    out = tr.Renderer(64, shading="unlit", antialias=True)(scene, view.double(), proj.double())
+    assert "antialias" in out.plan
+    area = out.alpha.sum()
+    (grad,) = torch.autograd.grad(area, scale)
+    assert float(grad) == pytest.approx(2 * float(area.detach()) / 0.37, rel=0.03)
+    plain = tr.Renderer(64, shading="unlit")(tr.RenderScene(base * scale, faces), view.double(),
+                                              proj.double())
+    assert not plain.alpha.requires_grad

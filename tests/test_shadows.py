@@ -18,7 +18,6 @@ Measured numbers are printed (``pytest -s``); docs/benchmarks.md ("Shadows") has
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import pytest
@@ -52,8 +51,7 @@ def camera(eye=(0.0, 2.5, 4.0), target=(0.0, 0.3, 0.0), fov: float = 45.0):
 
 @pytest.fixture(scope="module")
 def sphere():
-    s = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
-    return torch.tensor(s.vertices) + torch.tensor([0.0, 0.5, 0.0]), torch.tensor(s.faces)
+    return rt.icosphere(0.5, (0.0, 0.5, 0.0))
 
 
 @pytest.fixture(scope="module")
@@ -87,11 +85,11 @@ def _hard_case(caster, kind: str, filt: str):
     return rt.mask_stats(shot.vis, ref, shot.valid, band=2)
 
 
-def _check_hard(stats: dict, label: str) -> None:
+def _check_hard(stats: dict, label: str, min_shadow: int = 200) -> None:
     print(f"\n{label}: IoU {stats['iou']:.4f}, acne {stats['acne']:.2e} ({stats['n_acne']} of "
           f"{stats['n_lit']} lit px), peter-panning {stats['peter']:.2e} ({stats['n_peter']} "
           f"of {stats['n_shadow']} shadowed px)")
-    assert stats["n_shadow"] > 200, "the scene casts a visible shadow"
+    assert stats["n_shadow"] > min_shadow, "the scene casts a visible shadow"
     assert stats["iou"] >= 0.98, f"{label}: IoU {stats['iou']:.4f} < 0.98"
     assert stats["acne"] <= 1e-3, f"{label}: acne rate {stats['acne']:.2e}"
     assert stats["peter"] <= 1e-2, f"{label}: peter-panning rate {stats['peter']:.2e}"
@@ -101,7 +99,13 @@ def _check_hard(stats: dict, label: str) -> None:
 @pytest.mark.parametrize("kind", KINDS)
 @pytest.mark.parametrize("caster", ["sphere", "torus"])
 def test_hard_shadow_mask_matches_ray_tracing(caster, kind, filt, request):
-    """512² maps (default biases; ``pcf`` = the default filter, thresholded at 0.5)."""
+    """512² maps (default biases; ``pcf`` = the default filter, thresholded at 0.5).
+
+    Measured: the spot light (sphere 0.977 / 0.980, torus 0.974 / 0.975) and the torus
+    under the point light (0.979) miss IoU 0.98. The shadows shrink: 3-4 times more
+    reference-shadowed pixels are lit than the reverse. The cause is ``normal_bias`` = 1
+    texel, which moves every lookup ~1 texel towards the light; with ``normal_bias=0``
+    every case here reaches 0.981-0.998, with no acne (docs/benchmarks.md, "Biases")."""
     stats = _hard_case(request.getfixturevalue(caster), kind, filt)
     _check_hard(stats, f"{caster} {kind} {filt}")
 
@@ -109,38 +113,13 @@ def test_hard_shadow_mask_matches_ray_tracing(caster, kind, filt, request):
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", KINDS)
 def test_hard_shadow_mask_bunny(kind, shared_data):
+    """Measured at 512²: IoU 0.963 / 0.950 / 0.969 (directional / spot / point); 0.985 /
+    0.979 / 0.990 with ``normal_bias=0`` (see the test above)."""
     stats = _hard_case(_bunny(shared_data), kind, "pcf")
-    _check_hard(stats, f"bunny {kind} pcf")
+    _check_hard(stats, f"bunny {kind} pcf", min_shadow=100)
 
 
 # ------------------------------------------------------------------- acne at grazing angles
-
-
-def _grazing_plane_shot(kind: str, elevation: float, filt: str, plane: float = 6.0,
-                        res: int = 128, azimuth: float = 30.0):
-    """A plane that casts and receives (nothing else) lit at ``elevation`` degrees:
-    directional from ``azimuth``; spot / point at 3 m from the plane's centre, at the
-    height that makes the centre's elevation ``elevation`` (nearer pixels see it higher)."""
-    positions, faces, _ = rt.ground_scene([], plane)
-    cast = torch.ones(2, dtype=torch.bool)
-    e, a = math.radians(elevation), math.radians(azimuth)
-    st = ShadowSettings(map_size=512, filter=filt)
-    if kind == "directional":
-        lights = make_lights(kind, st, direction=(-math.cos(e) * math.sin(a), -math.sin(e),
-                                                  -math.cos(e) * math.cos(a)))
-    else:
-        h = 3 * math.tan(e)
-        lights = make_lights(kind, st, position=(-3.0, h, 0.0), direction=(1.0, -h / 3, 0.0),
-                             cone=1.2)
-    view, proj = camera((0.0, 3.0, 5.0), (0.0, 0.0, 0.0))
-    shot = shoot(positions, faces, cast, lights, view, proj, res=res, min_cos=0.0)
-    # pixels that see the light at `elevation` or higher (the spot / point centre case)
-    light = ray_light(lights)
-    if "light_position" in light:
-        to_light = light["light_position"].view(3, 1, 1) - shot.position
-        sin_el = to_light[1] / to_light.norm(dim=0)
-        shot.valid &= sin_el >= math.sin(e) - 1e-6
-    return shot
 
 
 GRAZING = [("directional", 5.0, 6.0), ("directional", 5.0, 200.0), ("directional", 10.0, 200.0),
@@ -153,8 +132,15 @@ def test_no_acne_on_a_plane_at_grazing_light(kind, elevation, plane, filt):
     """No caster but the plane itself: every pixel must be lit. Acne pixel = visibility below
     0.95 (a filtered lookup's partial self-shadowing darker than 5 % is acne too; the
     minimum is printed). The 200 m plane is larger than the camera's frustum, so its
-    directional map is the frustum-fitted (square) one."""
-    shot = _grazing_plane_shot(kind, elevation, filt, plane)
+    directional map is the frustum-fitted (square) one.
+
+    Measured: PCSS under spot / point lights fails (every pixel at 0.56 at 5 degrees, 0.75
+    at 15): its blocker search (up to ``max_penumbra`` texels) and its PCF taps compare
+    the map against the receiver's depth at its own position, so the receiver's own plane,
+    nearer the light a few texels away, counts as a blocker. A slope term that grows with
+    each tap's distance (receiver-plane bias) removes it (report of this test's author)."""
+    shot = rt.grazing_plane_shot(kind, elevation, ShadowSettings(map_size=512, filter=filt),
+                                 plane)
     vis = shot.vis[shot.valid]
     assert vis.numel() > 1000
     acne = int((vis < 0.95).sum())
@@ -167,7 +153,7 @@ def test_no_acne_on_a_plane_at_grazing_light(kind, elevation, plane, filt):
 
 def test_light_parallel_to_plane_is_finite():
     """Elevation 0: the plane is unlit (n . l = 0), nothing may be NaN."""
-    shot = _grazing_plane_shot("directional", 0.0, "pcf")
+    shot = rt.grazing_plane_shot("directional", 0.0, ShadowSettings(map_size=512))
     assert torch.isfinite(shot.image).all()
     assert int(shot.valid.sum()) == 0
 
@@ -183,12 +169,12 @@ SOFT_BOUNDS = {"pcf": (0.03, 0.15), "pcss": (0.015, 0.06), "vsm": (0.03, 0.15)}
 
 @pytest.fixture(scope="module")
 def soft_refs(sphere):
-    """Per light kind: the scene, the G-buffer shot and the area-light reference (96²)."""
+    """Per light kind: the scene, the G-buffer shot and the area-light reference (80²)."""
     positions, faces, cast = rt.ground_scene([sphere], 4.0)
     out = {}
     for kind in KINDS:
         lights = make_lights(kind, ShadowSettings(map_size=1024, filter="hard"))
-        shot = shoot(positions, faces, cast, lights, *camera(), res=96)
+        shot = shoot(positions, faces, cast, lights, *camera(), res=80)
         size = LIGHT_SIZE[kind]
         ref = reference(shot, lights, positions, faces[cast], samples=36,
                         **({"angle": size} if kind == "directional" else {"radius": size}))
@@ -201,7 +187,7 @@ def soft_refs(sphere):
 def test_soft_shadows_vs_area_light(kind, filt, soft_refs):
     positions, faces, cast, shot0, ref = soft_refs[kind]
     st = ShadowSettings(map_size=1024, filter=filt, light_size=LIGHT_SIZE[kind])
-    shot = shoot(positions, faces, cast, make_lights(kind, st), *camera(), res=96)
+    shot = shoot(positions, faces, cast, make_lights(kind, st), *camera(), res=80)
     assert torch.equal(shot.valid, shot0.valid)
     err = (shot.vis.double() - ref).abs()[shot.valid]
     region = ((ref < 0.999) | (shot.vis < 0.999))[shot.valid]
@@ -217,22 +203,11 @@ def test_soft_shadows_vs_area_light(kind, filt, soft_refs):
 
 
 @pytest.fixture(scope="module")
-def field_scene(sphere):
-    """Spheres scattered 2-40 m ahead of a low camera over a 100 m plane."""
-    gen = torch.Generator().manual_seed(1)
-    v, f = sphere
-    casters = []
-    for i in range(10):
-        z = -2.0 - 38.0 * (i / 9) ** 1.5
-        x = float(torch.rand(1, generator=gen) * 2 - 1) * (2 + 0.35 * -z)
-        r = 0.35 + 0.25 * float(torch.rand(1, generator=gen))
-        casters.append(((v - torch.tensor([0.0, 0.5, 0.0])) * (r / 0.5)
-                        + torch.tensor([x, r, z]), f))
-    return rt.ground_scene(casters, 100.0)
+def field_scene():
+    return rt.field_of_spheres()
 
 
-FIELD_CAMERA = ((0.0, 1.7, 2.0), (0.0, 0.6, -10.0), 50.0)
-FIELD_SUN = (-0.5, -0.8, 0.3)
+FIELD_CAMERA, FIELD_SUN = rt.FIELD_CAMERA, rt.FIELD_SUN
 
 
 @pytest.fixture(scope="module")
@@ -240,7 +215,7 @@ def field_ref(field_scene):
     positions, faces, cast = field_scene
     lights = make_lights("directional", ShadowSettings(map_size=512, filter="hard"),
                          direction=FIELD_SUN)
-    shot = shoot(positions, faces, cast, lights, *camera(*FIELD_CAMERA), res=192)
+    shot = shoot(positions, faces, cast, lights, *camera(*FIELD_CAMERA), res=160)
     return shot, reference(shot, lights, positions, faces[cast])
 
 
@@ -250,7 +225,7 @@ def test_cascades_agree_with_ray_tracing(cascades, field_scene, field_ref):
     shot0, ref = field_ref
     st = ShadowSettings(map_size=512, filter="pcf", cascades=cascades)
     lights = make_lights("directional", st, direction=FIELD_SUN)
-    shot = shoot(positions, faces, cast, lights, *camera(*FIELD_CAMERA), res=192)
+    shot = shoot(positions, faces, cast, lights, *camera(*FIELD_CAMERA), res=160)
     stats = rt.mask_stats(shot.vis, ref, shot0.valid)
     print(f"\n{cascades} cascade(s) 512²: IoU {stats['iou']:.4f}, acne {stats['n_acne']} px, "
           f"peter-panning {stats['n_peter']} px; {shot.plan.shadow_maps}")
@@ -271,7 +246,7 @@ def test_cascades_shadow_receivers_nearer_than_every_caster(field_scene, field_r
     near = shot0.valid & (depth < caster_depth.min())
     st = ShadowSettings(map_size=512, filter="hard", cascades=4)
     shot = shoot(positions, faces, cast, make_lights("directional", st, direction=FIELD_SUN),
-                 *camera(*FIELD_CAMERA), res=192)
+                 *camera(*FIELD_CAMERA), res=160)
     stats = rt.mask_stats(shot.vis, ref, near)
     print(f"\nreceivers nearer than every caster: IoU {stats['iou']:.4f}")
     assert int((near & (ref < 0.5)).sum()) > 20
@@ -438,7 +413,13 @@ def test_stress_finite(case, filt, sphere):
 
 
 def test_casters_behind_camera_still_cast(sphere):
-    """Shadows of casters outside the camera frustum (here behind it) are rendered."""
+    """Shadows of casters outside the camera frustum (here behind it) are rendered.
+
+    Fails (IoU 0 over ~900 shadowed pixels): ``directional_views`` takes the camera depth
+    range of the cascades from the casters' bounds (``_camera_depth_range``); casters all
+    behind the camera give a range of ~1e-3 m, the one cascade fitted to it covers none
+    of them and is skipped ("0 of 1 maps"). The range has to come from the receivers
+    (the visible G-buffer depths), which only the renderer knows."""
     positions, faces, cast = rt.ground_scene([sphere], 12.0)
     view, proj = camera((0.0, 1.2, -1.0), (0.0, 0.0, -5.0))
     lights = make_lights("directional", ShadowSettings(map_size=512, filter="pcf"),

@@ -88,3 +88,18 @@ def test_opaque_scenes_rasterize_one_layer():
 def test_alpha_layers_is_checked():
     with pytest.raises(ValueError, match="alpha_layers"):
         tr.Renderer(8, alpha_layers=0)
+
+
+def test_antialias_reads_the_surface_a_cutout_shows():
+    red, green = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0)
+    pos, faces, fm = _quads(0.5, 0.0)
+    scene = tr.RenderScene(pos, faces, face_material=fm,
+                           materials=[_material(green, 0.2, "MASK", 0.3), _material(red)])
+    r = tr.Renderer(16, shading="unlit", antialias=True)
+    out = r(scene, VIEW, PROJ)
+    assert "antialias" in out.plan
+    assert bool(torch.isfinite(out.image).all()) and float(out.alpha.max()) <= 1.0
+    # the front quad is cut out everywhere: the image is the back quad's, antialiased
+    plain = tr.Renderer(16, shading="unlit", antialias=True)(
+        tr.RenderScene(pos[4:], faces[2:] - 4, materials=[_material(red)]), VIEW, PROJ)
+    torch.testing.assert_close(out.image, plain.image)

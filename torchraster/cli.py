@@ -1,8 +1,14 @@
 """``torchraster render CONFIG... [--out DIR]``: batch rendering of YAML render configs.
 
-Exit codes: 0 all views written; 1 some views failed (each reported on one line, the
-others still rendered); 2 a config, output folder or device error found before rendering;
-130 interrupted (Ctrl-C).
+Views already rendered (their files present, their ``DIR/manifest.jsonl`` record made by
+the same config, camera, seed and version) are skipped, so a killed run is finished by
+running it again; ``--force`` renders everything. Under ``torchrun`` the views are split
+across the processes (``torchrun --nproc-per-node N -m torchraster render ...``; see
+:mod:`torchraster.distributed`).
+
+Exit codes: 0 all views written (or already done); 1 some views failed (each reported on
+one line, the others still rendered); 2 a config, output folder or device error found before
+rendering; 130 interrupted (Ctrl-C).
 """
 
 from __future__ import annotations
@@ -10,13 +16,13 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-import traceback
 from pathlib import Path
 
 EXAMPLE = """\
 example:
   torchraster render configs/quickstart.yaml --out out
   torchraster render configs/*.yaml --out renders -v
+  torchrun --nproc-per-node 4 -m torchraster render dataset.yaml --out renders
 
 Config reference: docs/config.md (or `torchraster schema`).
 """
@@ -34,7 +40,10 @@ def _parser() -> argparse.ArgumentParser:
                        formatter_class=raw)
     r.add_argument("configs", nargs="+", type=Path, help="render config files (YAML)")
     r.add_argument("--out", type=Path, default=Path("out"),
-                   help="output folder; each config writes to OUT/<config name>/[<camera>/]")
+                   help="output folder; each config writes to OUT/<config name>/[<object>/]"
+                   "[<camera>/], and OUT/manifest.jsonl lists every view")
+    r.add_argument("--force", action="store_true",
+                   help="render every view again, even those already done")
     r.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda:0 "
                    "(default: cpu)")
     r.add_argument("--allow-missing-textures", action="store_true",
@@ -77,8 +86,9 @@ def _check_device(name: str):
 
 def _prepare(args: argparse.Namespace) -> list:
     """Load and check every config, the output folders and the device before rendering;
-    raise one ConfigError listing every problem found."""
-    from .config import ConfigError, check_config, load_config
+    raise one ConfigError listing every problem found. Returns ``DatasetConfig``s."""
+    from .config import ConfigError, check_config, load_config, safe_name
+    from .distributed import DatasetConfig
     from .pipeline import OutputError, check_formats, check_output_dir
 
     problems, configs, stems = [], [], {}
@@ -96,13 +106,13 @@ def _prepare(args: argparse.Namespace) -> list:
         except ConfigError as e:
             problems.append(str(e))
             continue
-        stem = path.stem
+        stem = safe_name(path.stem)
         if stem in stems:
             problems.append(f"{path}: writes to {args.out / stem}, like {stems[stem]}; "
                             "rename one of the configs (or render them separately)")
             continue
         stems[stem] = path
-        configs.append((path, cfg))
+        configs.append(DatasetConfig(path, stem, cfg))
     try:
         check_output_dir(args.out)
     except OutputError as e:
@@ -112,52 +122,19 @@ def _prepare(args: argparse.Namespace) -> list:
     return configs
 
 
-def _render(args: argparse.Namespace, configs: list) -> int:
-    from tqdm import tqdm
+def _render(args: argparse.Namespace, configs: list, world) -> int:
+    from .distributed import render_dataset
 
-    from .pipeline import iter_render, view_folder, write_outputs
-
-    total = sum(len(cfg.cameras) for _, cfg in configs)
-    written = failed = 0
-    with tqdm(total=total, unit="view", disable=total < 2, file=sys.stderr) as bar:
-        for path, cfg in configs:
-            folder = args.out / path.stem
-            try:
-                views = list(iter_render(cfg, args.device))
-            except Exception as e:  # noqa: BLE001 (one bad config never stops the others)
-                tqdm.write(f"torchraster: error: {path}: {_one_line(e)}", file=sys.stderr)
-                if args.traceback:
-                    tqdm.write(traceback.format_exc(), file=sys.stderr)
-                failed += len(cfg.cameras)
-                bar.update(len(cfg.cameras))
-                continue
-            for i, render in enumerate(views):
-                name = cfg.cameras[i].name or f"view{i}"
-                try:
-                    result = render()
-                    files = write_outputs(result, view_folder(folder, cfg, result.name),
-                                          cfg.outputs.formats)
-                    written += 1
-                    if args.verbose:
-                        tqdm.write(f"{path} [{result.name}]: {result.plan}", file=sys.stderr)
-                        for f in files:
-                            tqdm.write(str(f), file=sys.stderr)
-                except Exception as e:  # noqa: BLE001 (one bad view never stops the others)
-                    failed += 1
-                    tqdm.write(f"torchraster: error: {path} [camera {name}]: {_one_line(e)}",
-                               file=sys.stderr)
-                    if args.traceback:
-                        tqdm.write(traceback.format_exc(), file=sys.stderr)
-                bar.update(1)
-    print(f"torchraster: {written} view(s) written to {args.out}, {failed} failed",
-          file=sys.stderr)
-    return 1 if failed else 0
-
-
-def _one_line(e: BaseException) -> str:
-    text = " ".join(str(e).split()) or type(e).__name__
-    return text if isinstance(e, (ValueError, OSError, MemoryError)) else (
-        f"{type(e).__name__}: {text}")
+    summary = render_dataset(configs, args.out, device=args.device, force=args.force,
+                             world=world, verbose=args.verbose,
+                             show_traceback=args.traceback)
+    if world.rank == 0:
+        done = f", {summary.skipped} already done" if summary.skipped else ""
+        rate = (f" ({summary.seconds:.1f} s, {summary.views_per_second:.2f} views/s)"
+                if summary.written else "")
+        print(f"torchraster: {summary.written} view(s) written to {args.out}{done}, "
+              f"{summary.failed} failed{rate}", file=sys.stderr)
+    return 1 if summary.failed else 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -169,18 +146,28 @@ def main(argv: list[str] | None = None) -> int:
         print(config_reference())
         return 0
     logging.basicConfig(level=logging.WARNING, format="torchraster: %(message)s")
+    from .distributed import init_world
+
+    world = init_world()
     try:
         from .config import ConfigError
 
+        problem = None
         try:
             configs = _prepare(args)
         except ConfigError as e:
-            _error(str(e))
+            problem = str(e)
+        problems = world.all_gather(problem)  # every rank stops if any rank found a problem
+        if any(problems):
+            if world.rank == 0:
+                _error(problem or next(f"(rank {r}) {p}" for r, p in enumerate(problems) if p))
             return 2
-        return _render(args, configs)
+        return _render(args, configs, world)
     except KeyboardInterrupt:
         print("torchraster: interrupted", file=sys.stderr)
         return 130
+    finally:
+        world.close()
 
 
 if __name__ == "__main__":

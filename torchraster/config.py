@@ -27,11 +27,17 @@ Example (``configs/quickstart.yaml``)::
 from __future__ import annotations
 
 import difflib
+import glob
+import hashlib
 import inspect
 import math
+import os
+import random
 import re
 import typing
+from collections import Counter
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -75,6 +81,8 @@ MAX_RESOLUTION: int = 16384
 MAX_SSAO_SAMPLES: int = 1024
 MAX_DOF_LEVELS: int = 64
 MAX_BLOOM_LEVELS: int = 16
+#: Most views one ``random_orbits`` camera entry may expand to (per object).
+MAX_RANDOM_VIEWS: int = 100_000
 
 
 def default_of(obj: Any, name: str) -> Any:
@@ -168,10 +176,19 @@ class ObjectConfig(_Strict):
 
 class SceneConfig(_Strict):
     """The geometry: a mesh or glTF scene file, relative to the config file, and optional
-    further ``objects`` (e.g. a ground plane)."""
+    further ``objects`` (e.g. a ground plane).
+
+    A *mesh set* renders many objects with one config, one at a time (each with the
+    ``objects``, lights and cameras of the config): ``mesh`` as a glob pattern
+    (``objects/*.glb``, ``**`` recurses; sorted) or ``meshes_from``, a list file. Each
+    object is named after its file (sanitised; the path is added where two stems clash)
+    and written to ``<out>/<config>/<object>/<camera>/``."""
 
     mesh: str | None = Field(None, description="the main mesh / glTF scene (optional when "
-                             "`objects` is given)")
+                             "`objects` is given), or a glob pattern naming a mesh set")
+    meshes_from: str | None = Field(
+        None, description="a mesh set listed in a text file: one mesh path per line, "
+        "relative to the list file; blank lines and `#` comments skipped")
     transform: TransformConfig = Field(default_factory=TransformConfig)
     normals: Literal["auto", "smooth", "flat"] = Field(
         "auto", description="auto: the file's normals (smooth if it has none); smooth: "
@@ -187,7 +204,10 @@ class SceneConfig(_Strict):
 
     @model_validator(mode="after")
     def _something(self) -> SceneConfig:
-        if self.mesh is None and not self.objects:
+        if self.mesh is not None and self.meshes_from is not None:
+            raise ValueError("give either 'mesh' or 'meshes_from' (a list of meshes), not "
+                             "both")
+        if self.mesh is None and self.meshes_from is None and not self.objects:
             raise ValueError("give 'mesh' (a file) or at least one entry in 'objects'")
         return self
 
@@ -210,6 +230,53 @@ class LookAtConfig(_Strict):
     up: Vec3 = Field(default_factory=lambda: [0.0, 1.0, 0.0])
 
 
+Range = Annotated[list[Finite], Field(min_length=2, max_length=2)]
+ElevationRange = Annotated[list[Annotated[float, Field(gt=-90, lt=90)]],
+                           Field(min_length=2, max_length=2)]
+
+
+class RandomOrbitsConfig(_Strict):
+    """``count`` cameras on random orbits, drawn anew for every object of the scene: view
+    ``j`` of an object draws from the seed of (``seed``, the object's name, the view's name),
+    so each object gets its own views, the same on every run and every rank, and adding
+    objects to a set changes no other object's views. Directions are uniform on the sphere
+    band between the two elevations (within the azimuth range); views are named
+    ``<name>_000``, ``<name>_001``, ... (``name`` default ``view<index>``)."""
+
+    count: Annotated[int, Field(ge=1, le=MAX_RANDOM_VIEWS)] = Field(
+        description="views per object")
+    seed: Annotated[int, Field(ge=0)] = Field(0, description="change it for other views")
+    azimuth_deg: Range = Field(default_factory=lambda: [0.0, 360.0],
+                               description="[min, max] degrees")
+    elevation_deg: ElevationRange = Field(default_factory=lambda: [-20.0, 60.0],
+                                          description="[min, max] degrees")
+    distance: Positive | Annotated[list[Positive], Field(min_length=2, max_length=2)] | None = (
+        Field(None, description="a distance or a [min, max] range; null frames the scene's "
+              "bounding sphere (as `orbit`)"))
+    target: Vec3 | None = Field(None, description="default: the scene's centre")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> RandomOrbitsConfig:
+        for key in ("azimuth_deg", "elevation_deg", "distance"):
+            value = getattr(self, key)
+            if isinstance(value, list) and value[0] > value[1]:
+                raise ValueError(f"{key}: expected [min, max], got {value}")
+        return self
+
+    def draw(self, seed: int) -> OrbitConfig:
+        """The orbit of the view whose seed is ``seed`` (see :func:`stable_seed`)."""
+        rng = random.Random(seed)
+        lo, hi = self.azimuth_deg
+        azimuth = lo + (hi - lo) * rng.random()
+        s0, s1 = (math.sin(math.radians(e)) for e in self.elevation_deg)
+        elevation = math.degrees(math.asin(s0 + (s1 - s0) * rng.random()))
+        distance = self.distance
+        if isinstance(distance, list):
+            distance = distance[0] + (distance[1] - distance[0]) * rng.random()
+        return OrbitConfig(azimuth_deg=azimuth, elevation_deg=elevation, distance=distance,
+                           target=self.target)
+
+
 class IntrinsicsConfig(_Strict):
     """Pinhole intrinsics in pixels (OpenCV convention), for the render resolution."""
 
@@ -220,7 +287,8 @@ class IntrinsicsConfig(_Strict):
 
 
 class CameraConfig(_Strict):
-    """One view. Exactly one of ``orbit`` / ``look_at`` places it (default: orbit)."""
+    """One view, or with ``random_orbits`` a set of views. At most one of ``orbit`` /
+    ``look_at`` / ``random_orbits`` places it (default: orbit)."""
 
     name: str | None = Field(None, description="output sub-folder (sanitised to letters, "
                              "digits, '.', '_', '-'); default view<index>")
@@ -233,12 +301,15 @@ class CameraConfig(_Strict):
     reverse_z: bool = False
     orbit: OrbitConfig | None = None
     look_at: LookAtConfig | None = None
+    random_orbits: RandomOrbitsConfig | None = None
 
     @model_validator(mode="after")
     def _one_placement(self) -> CameraConfig:
-        if self.orbit is not None and self.look_at is not None:
-            raise ValueError("give either 'orbit' or 'look_at', not both")
-        if self.orbit is None and self.look_at is None:
+        given = [k for k in ("orbit", "look_at", "random_orbits") if getattr(self, k) is not None]
+        if len(given) > 1:
+            raise ValueError(f"give one of 'orbit', 'look_at' or 'random_orbits', not "
+                             f"{' and '.join(repr(k) for k in given)}")
+        if not given:
             self.orbit = OrbitConfig()
         if self.near is not None and self.far is not None and self.far <= self.near:
             raise ValueError(f"far ({self.far}) must be greater than near ({self.near})")
@@ -844,16 +915,202 @@ def camera_names(cfg: RenderFile) -> list[str]:
             for i, c in enumerate(cfg.cameras)]
 
 
+def view_names(cfg: RenderFile) -> list[list[str]]:
+    """The output name of every view of every camera entry: ``[name]`` for a single camera,
+    ``[name_000, name_001, ...]`` for ``random_orbits`` (``name`` as in :func:`camera_names`)."""
+    out = []
+    for base, cam in zip(camera_names(cfg), cfg.cameras, strict=True):
+        if cam.random_orbits is None:
+            out.append([base])
+        else:
+            count = cam.random_orbits.count
+            width = max(3, len(str(count - 1)))
+            out.append([f"{base}_{j:0{width}d}" for j in range(count)])
+    return out
+
+
 def _duplicate_cameras(cfg: RenderFile) -> list[str]:
     seen: dict[str, int] = {}
     problems = []
-    for i, name in enumerate(camera_names(cfg)):
-        if name in seen:
-            problems.append(f"{cfg.where('cameras', i, 'name')}: camera name {name!r} is "
-                            f"used by cameras.{seen[name]} too; names must be unique (after "
-                            "sanitising to letters, digits, '.', '_', '-')")
-        seen.setdefault(name, i)
+    for i, names in enumerate(view_names(cfg)):
+        for name in names:
+            if name in seen and seen[name] != i:
+                problems.append(f"{cfg.where('cameras', i, 'name')}: camera name {name!r} is "
+                                f"used by cameras.{seen[name]} too; names must be unique "
+                                "(after sanitising to letters, digits, '.', '_', '-')")
+                break
+            seen.setdefault(name, i)
     return problems
+
+
+# --------------------------------------------------------------------------- mesh sets
+
+
+def stable_seed(*parts: object) -> int:
+    """A seed in [0, 2**63) from ``parts`` (their ``str``), the same in every process and on
+    every machine (unlike ``hash``)."""
+    digest = hashlib.sha256("\x1f".join(str(p) for p in parts).encode()).digest()
+    return int.from_bytes(digest[:8], "little") >> 1
+
+
+@dataclass(frozen=True)
+class MeshSetEntry:
+    """One object of a mesh set: its output name, its file and where it was named (for
+    errors: ``list.txt:7`` or ``config.yaml:2: scene.mesh``)."""
+
+    name: str
+    path: Path
+    source: str
+
+
+_GLOB_MAGIC = re.compile(r"[*?[]")
+
+
+def is_mesh_set(cfg: RenderFile) -> bool:
+    """Whether the config names a set of objects (``scene.meshes_from``, or ``scene.mesh``
+    as a glob pattern that is not itself an existing file)."""
+    sc = cfg.scene
+    if sc.meshes_from is not None:
+        return True
+    return (sc.mesh is not None and _GLOB_MAGIC.search(sc.mesh) is not None
+            and not cfg.resolve(sc.mesh).is_file())
+
+
+def _listed_meshes(cfg: RenderFile) -> tuple[Path, list[tuple[int, Path]]]:
+    """The list file of ``scene.meshes_from`` and its entries ``(line, resolved path)``."""
+    listing = cfg.resolve(cfg.scene.meshes_from)
+    try:
+        text = listing.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as e:
+        reason = "is a folder" if listing.is_dir() else (
+            "file not found" if not listing.exists() else getattr(e, "strerror", None) or e)
+        raise ConfigError(f"{cfg.where('scene', 'meshes_from')}: {listing}: {reason}") from None
+    entries = []
+    for number, line in enumerate(text.splitlines(), 1):
+        entry = line.strip()
+        if entry and not entry.startswith("#"):
+            path = Path(entry).expanduser()
+            entries.append((number, path if path.is_absolute() else
+                            (listing.parent / path).resolve()))
+    return listing, entries
+
+
+def _unique_object_names(paths: list[Path], base: Path) -> list[str]:
+    """Sanitised file stems; where stems clash, the path relative to ``base`` (suffix
+    kept); any clash left gets ``-2``, ``-3``, ..."""
+    stems = [safe_name(p.stem) for p in paths]
+    counts = Counter(stems)
+    names = [safe_name(os.path.relpath(p, base).replace(os.sep, "_")) if counts[s] > 1 else s
+             for p, s in zip(paths, stems, strict=True)]
+    seen: Counter = Counter()
+    out = []
+    for n in names:
+        seen[n] += 1
+        out.append(n if seen[n] == 1 else f"{n}-{seen[n]}")
+    return out
+
+
+def mesh_set(cfg: RenderFile) -> list[MeshSetEntry]:
+    """The objects of a mesh set config in order (glob matches sorted; list entries in file
+    order, duplicates dropped), each with a unique sanitised name. Empty when nothing
+    matches (:func:`check_config` reports it).
+
+    Raises:
+        ConfigError: the list file of ``scene.meshes_from`` cannot be read.
+    """
+    sc = cfg.scene
+    if sc.meshes_from is not None:
+        listing, entries = _listed_meshes(cfg)
+        first: dict[Path, int] = {}
+        for number, path in entries:
+            first.setdefault(path, number)
+        paths = list(first)
+        sources = [f"{listing}:{first[p]}" for p in paths]
+        base = listing.parent
+    else:
+        pattern = cfg.resolve(sc.mesh)
+        paths = sorted(Path(m) for m in glob.glob(str(pattern), recursive=True)
+                       if os.path.isfile(m))
+        sources = [cfg.where("scene", "mesh")] * len(paths)
+        parts = pattern.parts  # names are made relative to the folder the pattern starts in
+        first = next((i for i, part in enumerate(parts) if _GLOB_MAGIC.search(part)),
+                     len(parts) - 1)
+        base = Path(*parts[:max(first, 1)])
+    names = _unique_object_names(paths, base)
+    return [MeshSetEntry(n, p, src) for n, p, src in zip(names, paths, sources, strict=True)]
+
+
+def _mesh_set_problems(cfg: RenderFile) -> list[str]:
+    sc = cfg.scene
+    if sc.meshes_from is None:
+        return [] if mesh_set(cfg) else [
+            f"{cfg.where('scene', 'mesh')}: no file matches {sc.mesh!r} (in "
+            f"{cfg.resolve('.')})"]
+    try:
+        listing, entries = _listed_meshes(cfg)
+    except ConfigError as e:
+        return [str(e)]
+    problems, seen = [], {}
+    for number, path in entries:
+        if path in seen:
+            problems.append(f"{listing}:{number}: {path.name} is listed twice (first at "
+                            f"line {seen[path]})")
+        elif path.is_dir():
+            problems.append(f"{listing}:{number}: {path} is a folder, expected a mesh file")
+        elif not path.is_file():
+            problems.append(f"{listing}:{number}: file not found: {path}")
+        seen.setdefault(path, number)
+    if not entries:
+        problems.append(f"{cfg.where('scene', 'meshes_from')}: {listing} lists no mesh")
+    return problems
+
+
+def object_name(cfg: RenderFile) -> str:
+    """The object name of a config that is not a mesh set: its mesh's sanitised stem, or
+    ``scene`` for a scene built from ``objects`` only."""
+    return safe_name(Path(cfg.scene.mesh).stem) if cfg.scene.mesh is not None else "scene"
+
+
+@dataclass(frozen=True)
+class PlannedCamera:
+    """One view of one object: its name, its camera (``random_orbits`` drawn into an
+    ``orbit``; ``name`` set) and its seed (:func:`stable_seed`)."""
+
+    name: str
+    camera: CameraConfig
+    seed: int
+
+
+def expand_cameras(cfg: RenderFile, obj: str, seed: int = 0) -> list[PlannedCamera]:
+    """The views of object ``obj``: one per camera entry, ``count`` per ``random_orbits``
+    entry (drawn from ``stable_seed(seed, random_orbits.seed, obj, view name)``).
+
+    Args:
+        cfg: the config.
+        obj: the object's name (the same object gets the same views in every process).
+        seed: a seed mixed into every view's (``RenderDataset(seed=...)``; 0 on the
+            command line).
+    """
+    out = []
+    for cam, names in zip(cfg.cameras, view_names(cfg), strict=True):
+        ro = cam.random_orbits
+        for name in names:
+            view_seed = stable_seed(seed, ro.seed if ro is not None else 0, obj, name)
+            update: dict[str, Any] = {"name": name}
+            if ro is not None:
+                update.update(random_orbits=None, orbit=ro.draw(view_seed))
+            out.append(PlannedCamera(name, cam.model_copy(update=update), view_seed))
+    return out
+
+
+def object_config(cfg: RenderFile, mesh: Path | str | None,
+                  cameras: Sequence[CameraConfig]) -> RenderFile:
+    """A copy of ``cfg`` that renders one object (``mesh``, an absolute path or None for a
+    scene of ``objects`` only) with the given concrete cameras (names set, no
+    ``random_orbits``)."""
+    scene = cfg.scene.model_copy(update={"mesh": None if mesh is None else str(mesh),
+                                         "meshes_from": None})
+    return cfg.model_copy(update={"scene": scene, "cameras": list(cameras)})
 
 
 def check_config(cfg: RenderFile) -> None:
@@ -872,7 +1129,11 @@ def check_config(cfg: RenderFile) -> None:
         elif not p.is_file():
             problems.append(f"{cfg.where(*loc)}: file not found: {p}")
 
-    meshes = [(("scene", "mesh"), cfg.scene.mesh)] if cfg.scene.mesh is not None else []
+    mesh_set_config = is_mesh_set(cfg)
+    if mesh_set_config:  # files checked to exist; textures when each object loads
+        problems += _mesh_set_problems(cfg)
+    meshes = [(("scene", "mesh"), cfg.scene.mesh)] if (
+        cfg.scene.mesh is not None and not mesh_set_config) else []
     meshes += [(("scene", "objects", i, "mesh"), o.mesh)
                for i, o in enumerate(cfg.scene.objects) if o.mesh is not None]
     for loc, relative in meshes:
@@ -1142,6 +1403,7 @@ def _models_in(annotation: Any) -> list[type[BaseModel]]:
 
 __all__ = [
     "ConfigError", "RenderFile", "build_post_chain", "build_renderer", "build_ssao",
-    "camera_names", "check_config", "config_reference", "default_of", "lights_from_config",
-    "load_config", "parse_config", "parse_lights", "safe_name",
+    "camera_names", "check_config", "config_reference", "default_of", "expand_cameras",
+    "is_mesh_set", "lights_from_config", "load_config", "mesh_set", "object_config",
+    "object_name", "parse_config", "parse_lights", "safe_name", "stable_seed", "view_names",
 ]

@@ -8,6 +8,10 @@ Every file is written atomically (a temporary file ``.<name>.trtmp-XXXX<suffix>`
 same folder, then a rename) with the permissions a plain ``open()`` would give under the
 user's umask, so a crash never leaves a half-written image behind; temporary files left by
 a killed run are swept from a folder before it is written again.
+
+A config describes a list of views (:func:`plan_objects`): its objects (one mesh, or a mesh
+set: a glob or a list file) times its cameras (``random_orbits`` drawn per object). Sharded,
+resumable rendering of many configs to a folder is :func:`torchraster.distributed.render_dataset`.
 """
 
 from __future__ import annotations
@@ -34,9 +38,14 @@ from .config import (
     TransformConfig,
     build_post_chain,
     build_renderer,
-    camera_names,
     check_config,
+    expand_cameras,
+    is_mesh_set,
     lights_from_config,
+    mesh_set,
+    object_config,
+    object_name,
+    view_names,
 )
 from .hdr_io import read_hdr
 from .io import load_scene, load_texture
@@ -64,12 +73,80 @@ class ViewResult:
             [0, 1], ``radiance`` linear HDR, G-buffer channels raw.
         plan: the :class:`~torchraster.RenderPlan` that ran.
         mask: ``(1, H, W)`` coverage > 0, for the display encodings.
+        view: ``(4, 4)`` world -> view matrix (OpenGL convention) of the camera.
+        proj: ``(4, 4)`` projection matrix (view -> clip).
     """
 
     name: str
     images: dict[str, torch.Tensor]
     plan: RenderPlan
     mask: torch.Tensor = field(repr=False, default_factory=lambda: torch.ones(1, 1, 1))
+    view: torch.Tensor | None = field(repr=False, default=None)
+    proj: torch.Tensor | None = field(repr=False, default=None)
+
+
+@dataclass(frozen=True)
+class ViewSpec:
+    """One view of a config: which object, which camera, where its files go.
+
+    Attributes:
+        object: the object's name (the mesh set entry's, else :func:`object_name`).
+        camera: the view's name (unique per object).
+        folder: the view's folder relative to the config's output folder, POSIX style:
+            ``<object>/<camera>`` for a mesh set, ``<camera>`` when the config has several
+            views, ``""`` (the folder itself) for one.
+        seed: the view's seed (:func:`~torchraster.config.stable_seed`).
+        camera_config: the concrete camera (named; ``random_orbits`` drawn).
+    """
+
+    object: str
+    camera: str
+    folder: str
+    seed: int
+    camera_config: CameraConfig = field(repr=False)
+
+
+@dataclass
+class ObjectPlan:
+    """The views of one object of a config.
+
+    Attributes:
+        name: the object's name.
+        mesh: its mesh file (None for a scene of ``scene.objects`` only).
+        config: the config of this object alone (its mesh, its concrete cameras).
+        views: one :class:`ViewSpec` per camera, in order.
+    """
+
+    name: str
+    mesh: Path | None
+    config: RenderFile = field(repr=False)
+    views: list[ViewSpec]
+
+
+def plan_objects(cfg: RenderFile, seed: int = 0) -> list[ObjectPlan]:
+    """Every object of a config with its views, in a fixed order (the same in every
+    process): mesh set entries sorted (glob) or in list order, cameras in config order.
+
+    Args:
+        cfg: a validated config.
+        seed: mixed into every view's seed (``RenderDataset(seed=...)``; 0 for the CLI).
+    """
+    in_set = is_mesh_set(cfg)
+    if in_set:
+        objects = [(e.name, e.path) for e in mesh_set(cfg)]
+        several = True
+    else:
+        mesh = cfg.resolve(cfg.scene.mesh) if cfg.scene.mesh is not None else None
+        objects = [(object_name(cfg), mesh)]
+        several = sum(len(names) for names in view_names(cfg)) > 1
+    plans = []
+    for name, mesh in objects:
+        cams = expand_cameras(cfg, name, seed)
+        views = [ViewSpec(name, c.name, f"{name}/{c.name}" if in_set else (
+            c.name if several else ""), c.seed, c.camera) for c in cams]
+        plans.append(ObjectPlan(name, mesh, object_config(cfg, mesh, [c.camera for c in cams]),
+                                views))
+    return plans
 
 
 def _transform_matrix(t: TransformConfig) -> torch.Tensor:
@@ -305,18 +382,20 @@ def _encode(name: str, img: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 
 
 def render_config(cfg: RenderFile, device: str | torch.device = "cpu") -> list[ViewResult]:
-    """Render every camera of a config. Returns one :class:`ViewResult` per camera."""
+    """Render every view of a config. Returns one :class:`ViewResult` per view."""
     return [render() for render in iter_render(cfg, device)]
 
 
 def iter_render(cfg: RenderFile, device: str | torch.device = "cpu"
                 ) -> Iterator[Callable[[], ViewResult]]:
-    """The views of a config, lazily: scene, lights and environment are loaded once, then
-    each yielded callable renders one camera (so a caller can report a failing view and
-    carry on with the next).
+    """The views of a config, lazily: each object's scene, lights and environment are
+    loaded once (when its first view is reached), then each yielded callable renders one
+    view (so a caller can report a failing view and carry on with the next).
 
     Yields:
-        Callables returning a :class:`ViewResult`, one per camera, in order.
+        Callables returning a :class:`ViewResult`, one per view of :func:`plan_objects`, in
+        order; its ``name`` is the view's folder (``<object>/<camera>`` in a mesh set) or
+        its camera's name.
 
     Raises:
         NotImplementedError: for ``post.auto_exposure.rate``: adaptation over time needs a
@@ -327,6 +406,21 @@ def iter_render(cfg: RenderFile, device: str | torch.device = "cpu"
             "post.auto_exposure.rate: adaptation over time needs a sequence of frames; a "
             "render config renders independent stills (fully adapted), so rate would have no "
             "effect. Remove it (AutoExposure(rate=...) in Python adapts across frames).")
+    for obj in plan_objects(cfg):
+        render = view_renderer(obj.config, device)
+        for v in obj.views:
+            yield lambda v=v, render=render: render(v.camera_config, v.folder or v.camera)
+
+
+def view_renderer(cfg: RenderFile, device: str | torch.device = "cpu"
+                  ) -> Callable[[CameraConfig, str], ViewResult]:
+    """Load what a config's views share (scene, lights, environment, renderer, post chain)
+    once; returns ``render(camera, name) -> ViewResult`` for any concrete camera of it.
+
+    Args:
+        cfg: a config of one object (not a mesh set; see :func:`plan_objects`).
+        device: where to render.
+    """
     scene = build_scene(cfg).to(device)
     res = cfg.render.size
     lights = lights_from_config(cfg.lights, 1, device) if cfg.lights else None
@@ -342,9 +436,8 @@ def iter_render(cfg: RenderFile, device: str | torch.device = "cpu"
     channels = set(cfg.outputs.channels) - {"color", "radiance", "alpha"}
     if post.dof.enabled:
         channels.add("depth")
-    names = camera_names(cfg)
 
-    def render_view(i: int, cam: CameraConfig) -> ViewResult:
+    def render_view(cam: CameraConfig, name: str) -> ViewResult:
         view, proj = build_camera(cam, scene.positions.cpu(), res)
         with torch.no_grad():
             out = renderer(scene, view.to(device), proj.to(device), lights, env, channels)
@@ -358,10 +451,10 @@ def iter_render(cfg: RenderFile, device: str | torch.device = "cpu"
         images = {"color": color[0], "radiance": radiance[0], "alpha": out.alpha[0]}
         images.update({k: v[0] for k, v in out.gbuffer.items()})
         images = {k: v for k, v in images.items() if k in cfg.outputs.channels}
-        return ViewResult(names[i], images, out.plan, (out.alpha[0] > 0).to(color.dtype))
+        return ViewResult(name, images, out.plan, (out.alpha[0] > 0).to(color.dtype),
+                          view[0], proj[0])
 
-    for i, cam in enumerate(cfg.cameras):
-        yield lambda i=i, cam=cam: render_view(i, cam)
+    return render_view
 
 
 def _umask_mode() -> int:
@@ -375,8 +468,16 @@ class OutputError(OSError):
     """Writing an output file failed; the message names the file and the reason."""
 
 
-def _atomic_write(path: Path, write: Callable[[str], None]) -> None:
-    """Write through a temporary file in the same folder, then rename over ``path``."""
+def atomic_write(path: Path, write: Callable[[str], None]) -> None:
+    """Write through a temporary file in the same folder, then rename over ``path``.
+
+    Args:
+        path: the file to write.
+        write: writes the content to the temporary path it is given.
+
+    Raises:
+        OutputError: naming ``path`` (the temporary file is removed).
+    """
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}{TEMP_MARKER}",
@@ -429,15 +530,15 @@ def write_outputs(result: ViewResult, out_dir: str | Path, formats: list[str]) -
             arr = (arr * (65535 if bits16 else 255) + 0.5).astype(np.uint16 if bits16 else np.uint8)
             arr = arr[..., 0] if arr.shape[-1] == 1 else arr
             path = out_dir / f"{name}.png"
-            _atomic_write(path, lambda p, a=arr: skio.imsave(p, a, check_contrast=False))
+            atomic_write(path, lambda p, a=arr: skio.imsave(p, a, check_contrast=False))
             written.append(path)
         if "npy" in formats:
             path = out_dir / f"{name}.npy"
-            _atomic_write(path, lambda p, a=raw: np.save(p, a))
+            atomic_write(path, lambda p, a=raw: np.save(p, a))
             written.append(path)
         if "exr" in formats:
             path = out_dir / f"{name}.exr"
-            _atomic_write(path, lambda p, a=raw: _write_exr(p, a))
+            atomic_write(path, lambda p, a=raw: _write_exr(p, a))
             written.append(path)
     return written
 
@@ -474,9 +575,10 @@ def check_output_dir(out_dir: Path) -> None:
 
 
 def view_folder(out_dir: Path, cfg: RenderFile, name: str) -> Path:
-    """The folder of one view: ``out_dir`` (one camera) or ``out_dir/<name>``, checked to
-    stay inside ``out_dir``."""
-    folder = out_dir / name if len(cfg.cameras) > 1 else out_dir
+    """The folder of one view: ``out_dir`` (a config of one view) or ``out_dir/<name>``
+    (``name`` from :class:`ViewResult`), checked to stay inside ``out_dir``."""
+    several = is_mesh_set(cfg) or sum(len(names) for names in view_names(cfg)) > 1
+    folder = out_dir / name if several else out_dir
     root = out_dir.resolve()
     if folder.resolve() != root and root not in folder.resolve().parents:
         raise OutputError(f"{folder}: outside the output folder {out_dir}")
@@ -484,8 +586,9 @@ def view_folder(out_dir: Path, cfg: RenderFile, name: str) -> Path:
 
 
 def render_to_files(cfg: RenderFile, out_dir: str | Path, device: str = "cpu") -> list[Path]:
-    """Render every camera of ``cfg`` into ``out_dir`` (one sub-folder per camera when there
-    are several). Returns the written paths.
+    """Render every view of ``cfg`` into ``out_dir`` (one sub-folder per camera when there
+    are several, ``<object>/<camera>`` for a mesh set). Returns the written paths. No
+    manifest, no resume: see :func:`torchraster.distributed.render_dataset` for those.
 
     Raises:
         ConfigError: every missing file / degenerate camera, before rendering.

@@ -31,7 +31,7 @@ from ._validate import check_resolution, check_tensor
 from .gbuffer import CHANNELS, GBuffer, MipCache, check_channels, geometry_pass
 from .mesh import transform_points, vertex_normals
 from .numerics import safe_normalize
-from .raster import antialias, antialias_topology, rasterize
+from .raster import antialias, rasterize
 from .scene import RenderScene, as_render_scene
 from .shading.ibl import Environment, shade_ibl
 from .shading.lighting import shade
@@ -450,6 +450,7 @@ class Renderer(nn.Module):
                                                                  face_id, view, b)
             return self._shade(plan, gb, view, proj, eye, lights, environment, hook) * gb.mask
 
+        visible = frags  # the face ids / depths antialiasing sees
         if plan.alpha == "none":
             gb = gbs[0]
             radiance, coverage = radiance_of(gb, frags.face_id), gb.mask
@@ -465,6 +466,9 @@ class Renderer(nn.Module):
                 fid = torch.gather(torch.stack([f.face_id for f in layers]), 0,
                                    first.squeeze(1).unsqueeze(0))[0]
                 coverage = torch.gather(torch.stack(opacity), 0, first.unsqueeze(0))[0]
+                depth = torch.gather(torch.stack([f.depth for f in layers]), 0,
+                                     first.squeeze(1).unsqueeze(0))[0]
+                visible = _Visible(fid, depth)
                 radiance = radiance_of(gb, fid) * coverage
                 transmittance = 1 - coverage
             else:
@@ -488,10 +492,10 @@ class Renderer(nn.Module):
             alpha = 1 - transmittance
         else:
             alpha = gb.mask * gb.alpha if gb.alpha is not None else gb.mask
-        if plan.antialias:
-            topology = antialias_topology(scene.faces)
-            image = antialias(image, frags, clip, scene.faces, topology=topology)
-            alpha = antialias(alpha, frags, clip, scene.faces, topology=topology)
+        if plan.antialias:  # one call for colour and coverage
+            both = antialias(torch.cat([image, alpha.to(image.dtype)], 1), visible, clip,
+                             scene.faces)
+            image, alpha = both[:, :3], both[:, 3:]
         outputs = GBuffer(**{ch: getattr(gb, ch) for ch in plan.requested})
         if plan.supersample > 1:
             s = plan.supersample
@@ -575,6 +579,15 @@ class Renderer(nn.Module):
             def ibl(n, v, a, m, r):
                 return shade_ibl(n, v, a, m, r, None, environment)
         return shade(gb, camera_position=eye, lights=lights, ibl=ibl, visibility=visibility)
+
+
+@dataclass
+class _Visible:
+    """The visible surface per pixel (what ``antialias`` reads of Fragments) when cut-outs
+    select a deeper layer: ``face_id`` ``(B, H, W)`` (-1 empty), ``depth`` ``(B, H, W)``."""
+
+    face_id: torch.Tensor
+    depth: torch.Tensor
 
 
 def _caster_bounds(positions: torch.Tensor, faces: torch.Tensor,

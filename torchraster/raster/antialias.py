@@ -97,7 +97,8 @@ def antialias(
     one whose two faces lie on the same side of it as seen from the eye: a fold, where the
     surface turns away), at the fraction ``t`` in [0, 1] of the segment. The walk ends
     without a silhouette when it enters the face visible at ``n`` (both pixels show one
-    connected surface: internal edges never blend), reaches ``n``'s centre, or has crossed
+    connected surface: internal edges never blend; pairs whose two faces share an edge that
+    is not a fold are not walked at all), reaches ``n``'s centre, or has crossed
     ``MAX_WALK`` faces. The *occluder* side is the walk that found a silhouette, or if
     both did, the one from the face of smaller ``frags.depth`` (at its own pixel). The pair
     then *blends* unless the crossing lies behind the near plane or beyond the far plane,
@@ -177,19 +178,21 @@ def antialias(
     with torch.no_grad():
         ids = fid.reshape(-1)
         clip_t = clip_pos.detach().permute(2, 0, 1).reshape(4, -1)  # (4, B*V) rows
+        firsts, axes = [], []
         for axis in (0, 1):  # 0: horizontal pairs (x, x + 1), 1: vertical (x, x + W)
             diff = torch.zeros((b, h, w), dtype=torch.bool, device=fid.device)
             if axis == 0:
                 diff[:, :, :-1] = fid[:, :, 1:] != fid[:, :, :-1]
             else:
                 diff[:, :-1] = fid[:, 1:] != fid[:, :-1]
-            first = diff.view(-1).nonzero().squeeze(1)
+            firsts.append(diff.view(-1).nonzero().squeeze(1))
+            axes.append(torch.full_like(firsts[-1], axis))
             del diff
-            for k0 in range(0, first.numel(), per_chunk):
-                p = first[k0:k0 + per_chunk]
-                records.append(_pick_pairs(clip_t, clip_pos.shape, faces, topology, ids,
-                                           depth_at, p, p + (1 if axis == 0 else w), axis,
-                                           (h, w)))
+        first, axes = torch.cat(firsts), torch.cat(axes)  # both axes walk together
+        for k0 in range(0, first.numel(), per_chunk):
+            p, axis = first[k0:k0 + per_chunk], axes[k0:k0 + per_chunk]
+            records.append(_pick_pairs(clip_t, clip_pos.shape, faces, topology, ids, depth_at,
+                                       p, p + torch.where(axis == 0, 1, w), axis, (h, w)))
     if records:
         o, n, item, face, edge, axis, past_mid = (torch.cat(v)
                                                   for v in zip(*records, strict=True))
@@ -301,13 +304,13 @@ def _dot(line, p) -> torch.Tensor:
     return line[0] * p[0] + line[1] * p[1] + line[2] * p[2]
 
 
-def _step(o: torch.Tensor, n: torch.Tensor, axis: torch.Tensor | int,
+def _step(o: torch.Tensor, n: torch.Tensor, axis: torch.Tensor,
           resolution: tuple[int, int], dtype: torch.dtype):
     """NDC offset (dx, dy) from the centre of pixel ``o`` to that of its neighbour ``n``:
     one column for axis 0, one row for axis 1 (rows grow downwards, NDC y upwards)."""
     h, w = resolution
     sign = torch.where(n > o, 1.0, -1.0).to(dtype)
-    horizontal = torch.as_tensor(axis, device=o.device) == 0
+    horizontal = axis == 0
     zero = torch.zeros_like(sign)
     return (torch.where(horizontal, sign * (2.0 / w), zero),
             torch.where(horizontal, zero, sign * (-2.0 / h)))
@@ -346,7 +349,8 @@ def _walk(clip_t, faces, topology, vert_base, face, goal, o, n, axis, resolution
     side of the edge as seen from the eye); without one when it enters ``goal`` (the face
     visible at ``n``: both pixels show one connected surface), when the crossing lies
     beyond ``n``'s centre, or after ``MAX_WALK`` faces. ``vert_base`` (N,): offset of each
-    row's batch item in ``clip_t`` (4, B*V).
+    row's batch item in ``clip_t`` (4, B*V); ``axis`` (N,): 0 for horizontal pairs, 1 for
+    vertical ones.
 
     Returns (hit, reached, face, edge, t, blend), each (N,): ``hit`` the segment reaches a
     silhouette edge, ``edge`` of ``face``, at fraction ``t``; ``reached`` the walk entered
@@ -411,7 +415,7 @@ def _walk(clip_t, faces, topology, vert_base, face, goal, o, n, axis, resolution
             hit[done] = True
             edge[done] = ki
             t_out[done] = t[i]
-            across = (nx != 0) if axis == 0 else (ny != 0)  # not parallel to the pair
+            across = torch.where(axis[done] == 0, nx != 0, ny != 0)  # not parallel
             blend[done] = near_ok & far_ok & across
         reached[rows[arrive]] = True
         rows = rows[go]
@@ -472,7 +476,8 @@ def _pick_pairs(clip_t, clip_shape, faces, topology, fid, depth_at, p, q, axis, 
             continue
         r = _walk(clip_t, faces, topology, vert_base.index_select(0, todo % m),
                   face.index_select(0, todo), goal.index_select(0, todo),
-                  o.index_select(0, todo), n.index_select(0, todo), axis, resolution)
+                  o.index_select(0, todo), n.index_select(0, todo),
+                  axis.index_select(0, todo % m), resolution)
         hit[todo], arrived, face[todo], edge[todo], t[todo], blend[todo] = r
         if side == 0:
             reached[todo] = arrived
@@ -483,8 +488,8 @@ def _pick_pairs(clip_t, clip_shape, faces, topology, fid, depth_at, p, q, axis, 
         use_p[both] = depth_at(p[both]) <= depth_at(q[both])
     use_q = hq & ~use_p
     sel = (torch.cat([use_p, use_q]) & blend).nonzero().squeeze(1)
-    axis_t = torch.full((sel.numel(),), axis, dtype=torch.int64, device=p.device)
-    return (o[sel], n[sel], torch.cat([item, item])[sel], face[sel], edge[sel], axis_t,
+    return (o[sel], n[sel], torch.cat([item, item])[sel], face[sel], edge[sel],
+            torch.cat([axis, axis])[sel],
             t[sel] > 0.5)
 
 

@@ -312,6 +312,38 @@ def ground_scene(casters: list[tuple[torch.Tensor, torch.Tensor]], plane_size: f
     return torch.cat(verts), torch.cat(tris), torch.cat(cast)
 
 
+def icosphere(radius: float, centre, subdivisions: int = 3
+              ) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(V, 3)`` float64 vertices and ``(F, 3)`` faces of an icosphere (trimesh)."""
+    import trimesh  # noqa: PLC0415
+
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return torch.tensor(s.vertices) + torch.tensor(centre, dtype=F64), torch.tensor(s.faces)
+
+
+def sphere_on_plane() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A 1 m sphere (1280 faces) standing on a 4 m plane: :func:`ground_scene` outputs."""
+    return ground_scene([icosphere(0.5, (0.0, 0.5, 0.0))], 4.0)
+
+
+#: Camera (eye, target, vertical fov in degrees) and sun of :func:`field_of_spheres`.
+FIELD_CAMERA = ((0.0, 1.7, 2.0), (0.0, 0.6, -10.0), 50.0)
+FIELD_SUN = (-0.5, -0.8, 0.3)
+
+
+def field_of_spheres(count: int = 10) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``count`` spheres (radius 0.35-0.6 m, seeded) 2-40 m ahead of :data:`FIELD_CAMERA`
+    over a 100 m plane (cascades): :func:`ground_scene` outputs."""
+    gen = torch.Generator().manual_seed(1)
+    casters = []
+    for i in range(count):
+        z = -2.0 - 38.0 * (i / (count - 1)) ** 1.5
+        x = float(torch.rand(1, generator=gen) * 2 - 1) * (2 + 0.35 * -z)
+        r = 0.35 + 0.25 * float(torch.rand(1, generator=gen))
+        casters.append(icosphere(r, (x, r, z)))
+    return ground_scene(casters, 100.0)
+
+
 def _dilate(mask: torch.Tensor, radius: int) -> torch.Tensor:
     """Binary dilation of ``(H, W)`` bool by a (2 radius + 1)^2 square."""
     if radius <= 0:
@@ -456,6 +488,35 @@ def reference_for(shot: Shot, lights, positions: torch.Tensor, faces: torch.Tens
     return out.view(shot.valid.shape)
 
 
-__all__ = ["LIGHTS", "RAY_EPSILON", "Shot", "area_shadow_rays", "disc_samples", "ground_scene",
+
+def grazing_plane_shot(kind: str, elevation: float, settings, plane: float = 6.0,
+                       res: int = 128, azimuth: float = 30.0) -> Shot:
+    """A plane that casts and receives (nothing else) lit at ``elevation`` degrees:
+    directional from ``azimuth``; spot / point 3 m from the plane's centre at the height
+    that puts it ``elevation`` above the centre, and only the pixels that see the light at
+    least that high are valid. Every valid pixel should be fully lit."""
+    import torchraster as tr  # noqa: PLC0415
+
+    positions, faces, _ = ground_scene([], plane)
+    cast = torch.ones(2, dtype=torch.bool)
+    e, a = math.radians(elevation), math.radians(azimuth)
+    if kind == "directional":
+        lights = make_lights(kind, settings, direction=(
+            -math.cos(e) * math.sin(a), -math.sin(e), -math.cos(e) * math.cos(a)))
+    else:
+        h = 3 * math.tan(e)
+        lights = make_lights(kind, settings, position=(-3.0, h, 0.0),
+                             direction=(1.0, -h / 3, 0.0), cone=1.2)
+    view = tr.camera.look_at([0.0, 3.0, 5.0], [0.0, 0.0, 0.0])
+    proj = tr.camera.perspective(45.0, 1.0, 0.1)
+    shot = render_shadow_factor(positions, faces, cast, lights, view, proj, res=res,
+                                min_cos=0.0)
+    if kind != "directional":
+        to_light = ray_light(lights)["light_position"].view(3, 1, 1) - shot.position
+        shot.valid &= to_light[1] / to_light.norm(dim=0) >= math.sin(e) - 1e-6
+    return shot
+
+__all__ = ["FIELD_CAMERA", "FIELD_SUN", "LIGHTS", "RAY_EPSILON", "Shot", "area_shadow_rays",
+           "disc_samples", "field_of_spheres", "grazing_plane_shot", "ground_scene", "icosphere",
            "make_lights", "mask_stats", "occluded", "ray_light", "reference_for",
-           "render_shadow_factor", "shadow_rays"]
+           "render_shadow_factor", "shadow_rays", "sphere_on_plane"]
