@@ -10,12 +10,13 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 import trimesh
 
 import torchraster as tr
@@ -94,14 +95,27 @@ def as_mesh(mesh: trimesh.Trimesh) -> tr.Mesh:
                    torch.tensor(mesh.faces, dtype=torch.int64))
 
 
-def ring_views(count: int, distance: float, elevations: Sequence[float] = (25.0, -15.0)
-               ) -> torch.Tensor:
-    """``count`` world -> view matrices ``(count, 4, 4)`` orbiting the origin, evenly spread
-    in azimuth, alternating between ``elevations``."""
-    az = torch.arange(count, dtype=torch.float32) * (360.0 / count)
+def ring_views(count: int, distance: float, elevations: Sequence[float],
+               target: torch.Tensor | None = None, offset_deg: float = 0.0) -> torch.Tensor:
+    """``count`` world -> view matrices ``(count, 4, 4)`` orbiting ``target`` (default the
+    origin), evenly spread in azimuth from ``offset_deg``, cycling through ``elevations``
+    (degrees)."""
+    az = torch.arange(count, dtype=torch.float32) * (360.0 / max(1, count)) + offset_deg
     el = torch.tensor([elevations[i % len(elevations)] for i in range(count)],
                       dtype=torch.float32)
-    return tr.camera.orbit(az, el, torch.full((count,), distance))
+    return tr.camera.orbit(az, el, torch.full((count,), distance), target=target)
+
+
+def pyramid_loss(image: torch.Tensor, target: torch.Tensor, levels: int) -> torch.Tensor:
+    """Sum over ``levels`` box-filtered levels (1, 2, 4, ... px) of the mean squared
+    difference of two ``(B, C, H, W)`` images: the coarse levels see a misplaced
+    silhouette from further away."""
+    loss = image.new_zeros(())
+    for level in range(levels):
+        k = 2 ** level
+        a, b = (F.avg_pool2d(image, k), F.avg_pool2d(target, k)) if k > 1 else (image, target)
+        loss = loss + ((a - b) ** 2).mean()
+    return loss
 
 
 @dataclass
@@ -191,6 +205,23 @@ def save_strip(path: Path, panels: Sequence[tuple[str, np.ndarray]]) -> None:
 def stack_rows(rows: Sequence[np.ndarray]) -> np.ndarray:
     """Stack ``(H, W, 3)`` images of one width vertically."""
     return np.concatenate(list(rows), axis=0)
+
+
+def finish(args: argparse.Namespace, result: dict, picture: str, summary: str,
+           section: str, body: Callable[[], str]) -> dict:
+    """The end of every example: write the pictures (``result["panels"]``) to
+    ``--out``/``picture`` and ``--picture``, print ``summary`` (unless ``--quiet``) and,
+    with ``--benchmark``, write ``body()`` as section ``section`` of docs/benchmarks.md."""
+    if "panels" in result:
+        if args.out is not None:
+            save_strip(args.out / picture, result["panels"])
+        if args.picture is not None:
+            save_strip(args.picture, result["panels"])
+    if not args.quiet:
+        print(summary)
+    if args.benchmark:
+        write_benchmark(section, body())
+    return result
 
 
 def write_benchmark(name: str, body: str) -> None:

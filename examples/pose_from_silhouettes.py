@@ -72,17 +72,6 @@ def centre_error(view: torch.Tensor, true_view: torch.Tensor) -> torch.Tensor:
     return (eye - true_eye).norm(dim=1) / DISTANCE * 100
 
 
-def pyramid_loss(alpha: torch.Tensor, target: torch.Tensor, levels: int) -> torch.Tensor:
-    """Sum over ``levels`` box-filtered levels (1, 2, 4, ... px) of the mean squared
-    difference: the coarse levels see a misplaced silhouette from further away."""
-    loss = alpha.new_zeros(())
-    for level in range(levels):
-        k = 2 ** level
-        a, b = (F.avg_pool2d(alpha, k), F.avg_pool2d(target, k)) if k > 1 else (alpha, target)
-        loss = loss + ((a - b) ** 2).mean()
-    return loss
-
-
 def random_poses(count: int, generator: torch.Generator) -> torch.Tensor:
     """True views: random azimuth, elevation in [-15, 45] degrees, at ``DISTANCE``."""
     az = torch.rand(count, generator=generator) * 360
@@ -128,7 +117,7 @@ def run(args: argparse.Namespace) -> dict:
     for it in range(args.iterations):
         table.tick()
         view = current()
-        loss = pyramid_loss(renderer(mesh, view, proj).alpha, target, args.levels)
+        loss = common.pyramid_loss(renderer(mesh, view, proj).alpha, target, args.levels)
         opt.zero_grad()
         if loss.requires_grad:  # not with antialias=False: coverage is then constant
             loss.backward()
@@ -143,10 +132,12 @@ def run(args: argparse.Namespace) -> dict:
     with torch.no_grad():
         final_view = current()
         start_err = rotation_error_deg(start_view, true_view)
+        start_centre = centre_error(start_view, true_view)
         final_err = rotation_error_deg(final_view, true_view)
         final_centre = centre_error(final_view, true_view)
     result = {"history": table.history, "mesh": mesh_name, "start_err": start_err,
-              "final_err": final_err, "final_centre": final_centre}
+              "start_centre": start_centre, "final_err": final_err,
+              "final_centre": final_centre}
     if args.out is not None or args.picture is not None:
         result["panels"] = pictures(mesh, proj, start_view, true_view, final_view,
                                     args.picture_resolution)
@@ -175,15 +166,15 @@ def pictures(mesh: tr.Mesh, proj: torch.Tensor, start: torch.Tensor, true: torch
 def parser() -> argparse.ArgumentParser:
     """The command line."""
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    common.add_common_args(p, iterations=150, resolution=128, views=8,
+    common.add_common_args(p, iterations=200, resolution=128, views=8,
                            out="out/inverse_pose")
     p.add_argument("--mesh", default="spot",
                    help="spot (default), bunny (../shared/data), ellipsoid or a mesh file")
-    p.add_argument("--perturb-deg", type=float, default=15.0,
-                   help="starting rotation error in degrees (default 15)")
-    p.add_argument("--perturb-shift", type=float, default=0.2,
-                   help="starting translation error, object radius = 1 (default 0.2)")
-    p.add_argument("--lr", type=float, default=0.02, help="Adam learning rate (default 0.02)")
+    p.add_argument("--perturb-deg", type=float, default=20.0,
+                   help="starting rotation error in degrees (default 20)")
+    p.add_argument("--perturb-shift", type=float, default=0.25,
+                   help="starting translation error, object radius = 1 (default 0.25)")
+    p.add_argument("--lr", type=float, default=0.03, help="Adam learning rate (default 0.03)")
     p.add_argument("--levels", type=int, default=4,
                    help="silhouette pyramid levels of the loss (default 4)")
     p.add_argument("--no-antialias", action="store_true",
@@ -197,28 +188,26 @@ def main(argv: list[str] | None = None) -> dict:
     """Parse ``argv``, run, write the pictures (and the benchmark section)."""
     args = parser().parse_args(argv)
     result = run(args)
-    if "panels" in result:
-        if args.out is not None:
-            common.save_strip(args.out / "pose.png", result["panels"])
-        if args.picture is not None:
-            common.save_strip(args.picture, result["panels"])
-    hist = result["history"]
-    if not args.quiet:
-        print(f"{result['mesh']}: rotation error {result['start_err'].median():.2f} deg "
-              f"(median of {args.views}) -> {result['final_err'].median():.3f} deg, max "
-              f"{result['final_err'].max():.3f} deg; camera centre within "
-              f"{result['final_centre'].max():.3f} % of the distance; "
-              f"{hist.ms_per_iteration:.0f} ms/iteration")
-    if args.benchmark:
-        common.write_benchmark("inverse-pose", benchmark_body(args, result))
-    return result
+    return common.finish(args, result, "pose.png", summary(args, result), "inverse-pose",
+                         lambda: benchmark_body(args, result))
+
+
+def summary(args: argparse.Namespace, result: dict) -> str:
+    """Start and final rotation errors, camera-centre error and time per iteration."""
+    return (f"{result['mesh']}: rotation error {result['start_err'].median():.2f} deg "
+            f"(median of {args.views}) -> {result['final_err'].median():.3f} deg, max "
+            f"{result['final_err'].max():.3f} deg; camera centre within "
+            f"{result['final_centre'].max():.3f} % of the distance; "
+            f"{result['history'].ms_per_iteration:.0f} ms/iteration")
 
 
 def benchmark_body(args: argparse.Namespace, result: dict) -> str:
     """The docs/benchmarks.md section of this run."""
     hist = result["history"]
-    rows = [[i, hist.rows[i][0], hist.rows[i][1], hist.rows[i][2], hist.seconds[i] * 1e3]
-            for i in common.checkpoints(len(hist.rows))]
+    rows = [["start", float(result["start_err"].median()), float(result["start_err"].max()),
+             float(result["start_centre"].max()), ""]]
+    rows += [[i + 1, hist.rows[i][0], hist.rows[i][1], hist.rows[i][2], hist.seconds[i] * 1e3]
+             for i in common.checkpoints(len(hist.rows))]
     final = result["final_err"]
     return (
         "## Inverse rendering\n\n"
@@ -229,8 +218,9 @@ def benchmark_body(args: argparse.Namespace, result: dict) -> str:
         f"6-DoF camera poses perturbed by {args.perturb_deg:g}° about a random axis and "
         f"{args.perturb_shift:g} (object radius 1) along a random direction, recovered from "
         "antialiased silhouettes (`out.alpha`) against 4x-supersampled target coverage; "
-        "Adam, cosine learning-rate decay. Error = angle between recovered and true camera "
-        f"rotation.\n\n"
+        f"Adam (learning rate {args.lr:g}, cosine decay), all cameras in one batch. "
+        "Error = angle between recovered and true camera rotation; iteration = after that "
+        "many steps.\n\n"
         + common.markdown_table(["iteration", "median rotation error (°)",
                                  "max rotation error (°)", "max centre error (% of distance)",
                                  "ms / iteration"], rows)

@@ -33,7 +33,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 import trimesh
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -138,16 +137,6 @@ def surface_points(vertices: np.ndarray, faces: np.ndarray, count: int, seed: in
     return torch.tensor(points, dtype=torch.float32)
 
 
-def silhouette_loss(alpha: torch.Tensor, target: torch.Tensor, levels: int) -> torch.Tensor:
-    """Sum over ``levels`` box-filtered levels of the mean squared difference."""
-    loss = alpha.new_zeros(())
-    for level in range(levels):
-        k = 2 ** level
-        a, b = (F.avg_pool2d(alpha, k), F.avg_pool2d(target, k)) if k > 1 else (alpha, target)
-        loss = loss + ((a - b) ** 2).mean()
-    return loss
-
-
 def optimise(args: argparse.Namespace, antialias: bool, targets: dict, label: str
              ) -> dict:
     """One run of the deformation from the icosphere; returns its history and mesh."""
@@ -177,7 +166,7 @@ def optimise(args: argparse.Namespace, antialias: bool, targets: dict, label: st
         table.tick()
         positions = param.positions()
         out = renderer(tr.Mesh(positions, faces), views, proj)
-        sil = silhouette_loss(out.alpha, targets["alpha"], args.levels)
+        sil = common.pyramid_loss(out.alpha, targets["alpha"], args.levels)
         loss = (args.w_silhouette * sil + args.w_lap * laplacian_loss(lap, positions)
                 + args.w_edge * edge_loss(edges, positions))
         if args.w_shading > 0:
@@ -188,18 +177,19 @@ def optimise(args: argparse.Namespace, antialias: bool, targets: dict, label: st
         sched.step()
         table.tock()
         table.record(it, [measure(), sil.item(), loss.item()], last=it == args.iterations - 1)
-    return {"history": table.history, "initial": initial,
-            "positions": param.positions().detach(), "faces": faces, "start": base}
+    with torch.no_grad():
+        positions = param.positions()
+        final = chamfer(surface_points(positions.numpy(), sphere.faces, args.final_points,
+                                       args.seed + 4), targets["fine"])
+    return {"history": table.history, "initial": initial, "final": final,
+            "positions": positions, "faces": faces, "start": base}
 
 
 def prepare(args: argparse.Namespace) -> dict:
     """Target mesh, cameras, target silhouettes / images and target surface points."""
     target_mesh, name = common.load_target(args.target)
     mesh = common.as_mesh(target_mesh)
-    count = args.views
-    az = torch.arange(count, dtype=torch.float32) * (360.0 / count)
-    el = torch.tensor([ELEVATIONS[i % len(ELEVATIONS)] for i in range(count)])
-    views = tr.camera.orbit(az, el, torch.full((count,), DISTANCE))
+    views = common.ring_views(args.views, DISTANCE, ELEVATIONS)
     proj = tr.camera.perspective(FOV_DEG, 1.0, 0.1)
     with torch.no_grad():
         out = tr.Renderer(args.resolution, shading="headlight", supersample=4)(mesh, views, proj)
@@ -208,8 +198,13 @@ def prepare(args: argparse.Namespace) -> dict:
     # would score with this many points
     floor = chamfer(points, surface_points(target_mesh.vertices, target_mesh.faces,
                                            args.points, args.seed + 1))
+    fine = surface_points(target_mesh.vertices, target_mesh.faces, args.final_points,
+                          args.seed + 2)
+    fine_floor = chamfer(fine, surface_points(target_mesh.vertices, target_mesh.faces,
+                                              args.final_points, args.seed + 3))
     return {"name": name, "mesh": mesh, "views": views, "proj": proj, "alpha": out.alpha,
-            "image": out.image, "points": points, "floor": floor}
+            "image": out.image, "points": points, "floor": floor, "fine": fine,
+            "fine_floor": fine_floor}
 
 
 def pictures(targets: dict, runs: dict, size: int, rows: int = 2
@@ -243,7 +238,8 @@ def run(args: argparse.Namespace) -> dict:
         if not args.quiet:
             print(f"--- {targets['name']}, {label}")
         runs[label] = optimise(args, antialias, targets, "AA" if antialias else "no AA")
-    result = {"target": targets["name"], "runs": runs, "floor": targets["floor"]}
+    result = {"target": targets["name"], "runs": runs, "floor": targets["floor"],
+              "fine_floor": targets["fine_floor"], "final_points": args.final_points}
     if args.out is not None or args.picture is not None:
         result["panels"] = pictures(targets, runs, args.picture_resolution)
     return result
@@ -273,6 +269,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--w-edge", type=float, default=0.01, help="edge-length weight")
     p.add_argument("--points", type=int, default=5000,
                    help="surface points per Chamfer evaluation (default 5000)")
+    p.add_argument("--final-points", type=int, default=30000,
+                   help="surface points of the final Chamfer evaluation (default 30000)")
     p.add_argument("--skip-no-antialias", action="store_true",
                    help="skip the comparison run with antialias=False")
     p.add_argument("--picture-resolution", type=int, default=160,
@@ -284,16 +282,9 @@ def main(argv: list[str] | None = None) -> dict:
     """Parse ``argv``, run, write the pictures (and the benchmark section)."""
     args = parser().parse_args(argv)
     result = run(args)
-    if "panels" in result:
-        if args.out is not None:
-            common.save_strip(args.out / "shape.png", result["panels"])
-        if args.picture is not None:
-            common.save_strip(args.picture, result["panels"])
-    if not args.quiet:
-        print(summary(result))
-    if args.benchmark:
-        common.write_benchmark("inverse-shape", benchmark_body(args, result))
-    return result
+    section = "inverse-shape" if args.w_shading > 0 else "inverse-shape-silhouettes"
+    return common.finish(args, result, "shape.png", summary(result), section,
+                         lambda: benchmark_body(args, result))
 
 
 def catch_up(history: common.History, value: float) -> int | None:
@@ -306,26 +297,29 @@ def catch_up(history: common.History, value: float) -> int | None:
 
 def summary(result: dict) -> str:
     """Start and final Chamfer of each run, and how much antialiasing wins."""
+    n, floor = result["final_points"], result["fine_floor"]
     lines = []
     for label, r in result["runs"].items():
         h = r["history"]
-        lines.append(f"{label}: Chamfer {r['initial']:.4f} -> {h.rows[-1][0]:.4f} "
-                     f"({h.ms_per_iteration:.0f} ms/iteration)")
+        lines.append(f"{label}: Chamfer {r['initial']:.4f} -> {h.rows[-1][0]:.4f}; final "
+                     f"{r['final']:.4f} with {n} points (floor {floor:.4f}); "
+                     f"{h.ms_per_iteration:.0f} ms/iteration")
     runs = result["runs"]
     if "no antialias" in runs:
         aa, no = runs["antialias"], runs["no antialias"]
-        a_end, n_end = aa["history"].rows[-1][0], no["history"].rows[-1][0]
-        floor = result["floor"]
-        gain_a = (aa["initial"] - a_end) / (aa["initial"] - floor) * 100
-        gain_n = (no["initial"] - n_end) / (no["initial"] - floor) * 100
-        reach = catch_up(aa["history"], n_end)
+        excess_a, excess_n = aa["final"] - floor, no["final"] - floor
+        reach = catch_up(aa["history"], no["history"].rows[-1][0])
+        if reach is None:
+            reached = "never reaches the no-antialias final Chamfer"
+        else:
+            seconds = sum(aa["history"].seconds[:reach + 1])
+            reached = (f"reaches the no-antialias final Chamfer after {reach + 1} of "
+                       f"{len(aa['history'].rows)} iterations ({seconds:.1f} s against "
+                       f"{sum(no['history'].seconds):.1f} s)")
         lines.append(
-            f"antialiasing wins: final Chamfer {n_end / a_end:.2f}x lower; it closes "
-            f"{gain_a:.0f} % of the gap between the sphere and the sampling floor "
-            f"({floor:.4f}), without {gain_n:.0f} %; antialias reaches the no-antialias "
-            "final Chamfer after "
-            + (f"{reach + 1} of {len(aa['history'].rows)} iterations" if reach is not None
-               else "never"))
+            f"antialiasing wins: final Chamfer {no['final'] / aa['final']:.2f}x lower "
+            f"({(1 - aa['final'] / no['final']) * 100:.0f} % less), "
+            f"{excess_n / excess_a:.2f}x lower above the floor; antialias {reached}")
     return "\n".join(lines)
 
 
@@ -348,7 +342,8 @@ def benchmark_body(args: argparse.Namespace, result: dict) -> str:
     param = (f"the large-steps parametrisation (lambda {args.smooth:g})" if args.smooth > 0
              else "plain per-vertex offsets")
     return (
-        f"### Shape from silhouettes ({result['target']}, {args.views} views, "
+        f"### Shape from silhouettes{' and shading' if args.w_shading > 0 else ' only'} "
+        f"({result['target']}, {args.views} views, "
         f"{args.resolution}², {args.iterations} iterations)\n\n"
         f"An icosphere ({args.subdivisions} subdivisions, radius {args.radius:g}) deformed "
         f"by Adam (learning rate {args.lr:g}, cosine decay) through {param}: silhouette "
@@ -358,12 +353,14 @@ def benchmark_body(args: argparse.Namespace, result: dict) -> str:
         "regularisers. Chamfer = mean nearest distance target -> mesh + mesh -> target "
         f"over {args.points} points sampled on each surface (`trimesh.sample`), target in "
         f"the unit sphere; two samples of the target itself score {result['floor']:.4f} "
-        "(the floor). The `antialias=False` run is the same optimisation with only that "
+        f"(the floor; {result['fine_floor']:.4f} with the {args.final_points} points of the "
+        "final evaluation). The `antialias=False` run is the same optimisation with only that "
         "flag changed: its silhouette term has no gradient. Iteration = after that many "
         "steps; times exclude the Chamfer evaluation.\n\n"
         + common.markdown_table(header, rows)
         + "\n\n" + summary(result).replace("\n", "  \n")
-        + "\n\n![start / target / results](images/inverse_shape.png)"
+        + (f"\n\n![start / target / results](images/{args.picture.name})"
+           if args.picture is not None else "")
     )
 
 

@@ -100,6 +100,14 @@ INSIDE = {"look_at": {"eye": [0.0, 0.5, 0.0], "target": [0.0, 0.5, -1.0]}}
 MATERIAL = {"match": "*", "base_color": [1.0, 0.2, 0.1], "metallic": 0.0, "roughness": 0.5}
 
 
+RANDOM = {"random_orbits": {"count": 2, "distance": 4.0}}
+
+
+def _random(**change: object) -> tuple[dict, dict]:
+    return {"cameras": [RANDOM]}, {"cameras": [{"random_orbits": {
+        **RANDOM["random_orbits"], **change}}]}
+
+
 def _material(**change: object) -> tuple[dict, dict]:
     return {**PBR, "lights": [SUN], "materials": [MATERIAL]}, {
         **PBR, "lights": [SUN], "materials": [{**MATERIAL, **change}]}
@@ -115,9 +123,9 @@ def _shadow(light: dict, kind: str, base: dict, **change: object) -> tuple[dict,
 _SHADOW_CHANGES: dict[str, tuple[dict, dict]] = {
     "enabled": ({}, {"enabled": False}),
     "map_size": ({"filter": "hard"}, {"map_size": 8}),
-    "filter": ({}, {"filter": "vsm"}),
+    "filter": ({"filter": "hard", "map_size": 32}, {"filter": "vsm"}),
     "pcf_radius": ({"filter": "pcf"}, {"pcf_radius": 6.0}),
-    "pcf_taps": ({"filter": "pcf", "pcf_radius": 4.0}, {"pcf_taps": 2}),
+    "pcf_taps": ({"filter": "pcf", "pcf_radius": 4.0, "map_size": 32}, {"pcf_taps": 2}),
     "pcf_pattern": ({"filter": "pcf", "pcf_radius": 4.0, "pcf_taps": 9},
                     {"pcf_pattern": "grid"}),
     "bias": ({"filter": "hard"}, {"bias": 1000.0}),
@@ -131,7 +139,9 @@ _SHADOW_CHANGES: dict[str, tuple[dict, dict]] = {
     "cascade_blend": ({"filter": "hard", "cascades": 2, "map_size": 12, "max_distance": 4.0,
                        "split_lambda": 0.0, "cascade_blend": 0.0}, {"cascade_blend": 0.5}),
     "max_distance": ({"filter": "hard"}, {"max_distance": 0.5}),
-    "light_size": ({"filter": "pcss"}, {"light_size": 5.0}),
+    # metres for point / spot lights, degrees for the sun: 20 is a wide penumbra for both
+    "light_size": ({"filter": "pcss", "map_size": 64, "light_size": 0.01},
+                   {"light_size": 20.0}),
     "max_penumbra": ({"filter": "pcss", "light_size": 5.0, "map_size": 256},
                      {"max_penumbra": 0.5}),
     "vsm_blur": ({"filter": "vsm"}, {"vsm_blur": 8.0}),
@@ -214,7 +224,11 @@ OBJECT_VARIATIONS = {
                             {**TWO_GLASS, "render": {"alpha_layers": 1, "shading": "pbr"}}),
     "render.antialias": ({}, {"render": {"antialias": True}}),
     "scene.objects.cast_shadows": _object(cast_shadows=False),
-    "scene.objects.receive_shadows": _object(receive_shadows=False),
+    # a sun from the side: the ball's shadow falls on the box
+    "scene.objects.receive_shadows": (
+        {**OBJECT_BASE, "lights": [{**SUN, "direction": [1.0, -0.4, 0.0], "cast_shadows": True}]},
+        {**OBJECT_BASE, "lights": [{**SUN, "direction": [1.0, -0.4, 0.0], "cast_shadows": True}],
+         "scene": {"objects": [{**PRIMITIVE, "receive_shadows": False}]}}),
     "scene.cast_shadows": (OBJECT_BASE, {**OBJECT_BASE, "scene": {"cast_shadows": False}}),
     "scene.receive_shadows": (OBJECT_BASE, {**OBJECT_BASE,
                                             "scene": {"receive_shadows": False}}),
@@ -233,6 +247,8 @@ VARIATIONS: dict[str, tuple[dict, dict]] = {
     "scene.max_texture_size": ({}, {"scene": {"max_texture_size": 1}}),
     "scene.allow_missing_textures": ({"scene": {"mesh": "missing.obj"}}, {
         "scene": {"mesh": "missing.obj", "allow_missing_textures": True}}),
+    # a mesh set: the listed objects are rendered (and named) instead of stage.obj
+    "scene.meshes_from": ({}, {"scene": {"mesh": None, "meshes_from": "meshes.txt"}}),
     # cameras
     "cameras.projection": _camera(ORBIT, projection="orthographic"),
     "cameras.fov_deg": _camera(ORBIT, fov_deg=30.0),
@@ -255,6 +271,12 @@ VARIATIONS: dict[str, tuple[dict, dict]] = {
     "cameras.look_at.target": _camera(LOOK, look_at={**LOOK["look_at"],
                                                      "target": [0.4, 0.4, 0.0]}),
     "cameras.look_at.up": _camera(LOOK, look_at={**LOOK["look_at"], "up": [1.0, 1.0, 0.0]}),
+    "cameras.random_orbits.count": _random(count=3),
+    "cameras.random_orbits.seed": _random(seed=1),
+    "cameras.random_orbits.azimuth_deg": _random(azimuth_deg=[90.0, 100.0]),
+    "cameras.random_orbits.elevation_deg": _random(elevation_deg=[50.0, 60.0]),
+    "cameras.random_orbits.distance": _random(distance=[6.0, 8.0]),
+    "cameras.random_orbits.target": _random(target=[0.5, 0.0, 0.0]),
     # render
     "render.resolution": ({}, {"render": {"resolution": [16, 12]}}),
     "render.shading": ({}, {"render": {"shading": "unlit"}}),
@@ -428,6 +450,7 @@ def assets(tmp_path_factory) -> Path:
                                     "newmtl ground\nKd 0.7 0.7 0.7\n")
     _obj(root / "stage.obj", [(ball, "ball"), (ground, "ground")], "stage.mtl")
     _obj(root / "quad.obj", [(ground, "ground")], "stage.mtl")
+    (root / "meshes.txt").write_text("# a mesh set\nquad.obj\n")
     decal = ground.copy()
     decal.apply_transform(np.diag([0.5, 1.0, 0.5, 1.0]))
     decal.apply_translation([0.0, 0.0002, 0.0])

@@ -17,7 +17,7 @@ LAYERS: list[set[str]] = [
     {"shading"},
     {"post"},
     {"renderer", "transparency"},
-    {"config", "pipeline", "cli", "__main__", "__init__"},
+    {"config", "pipeline", "manifest", "distributed", "data", "cli", "__main__", "__init__"},
 ]
 CONFIG_ONLY = {"pydantic", "yaml"}
 

@@ -123,15 +123,21 @@ def _prepare(args: argparse.Namespace) -> list:
 
 
 def _render(args: argparse.Namespace, configs: list, world) -> int:
-    from .distributed import render_dataset
+    from .distributed import RankMismatchError, render_dataset
+    from .pipeline import OutputError
 
-    summary = render_dataset(configs, args.out, device=args.device, force=args.force,
-                             world=world, verbose=args.verbose,
-                             show_traceback=args.traceback)
+    try:
+        summary = render_dataset(configs, args.out, device=args.device, force=args.force,
+                                 world=world, verbose=args.verbose,
+                                 show_traceback=args.traceback)
+    except (RankMismatchError, OutputError) as e:
+        _error(str(e))
+        return 2 if isinstance(e, RankMismatchError) else 1
     if world.rank == 0:
         done = f", {summary.skipped} already done" if summary.skipped else ""
-        rate = (f" ({summary.seconds:.1f} s, {summary.views_per_second:.2f} views/s)"
-                if summary.written else "")
+        rate = (f" ({summary.seconds:.1f} s; rendering {summary.render_seconds:.1f} s, "
+                f"{summary.views_per_second:.2f} views/s, {summary.render_cpu_seconds:.1f} "
+                "CPU s)" if summary.written else "")
         print(f"torchraster: {summary.written} view(s) written to {args.out}{done}, "
               f"{summary.failed} failed{rate}", file=sys.stderr)
     return 1 if summary.failed else 0

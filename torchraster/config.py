@@ -241,7 +241,18 @@ class RandomOrbitsConfig(_Strict):
     so each object gets its own views, the same on every run and every rank, and adding
     objects to a set changes no other object's views. Directions are uniform on the sphere
     band between the two elevations (within the azimuth range); views are named
-    ``<name>_000``, ``<name>_001``, ... (``name`` default ``view<index>``)."""
+    ``<name>_000``, ``<name>_001``, ... (``name`` default ``view<index>``). A dataset of
+    24 views of every ``.glb`` file under ``objects/``, in one command (``torchraster render
+    dataset.yaml --out DIR``, or under ``torchrun``)::
+
+        scene:
+          mesh: objects/**/*.glb          # or meshes_from: objects.txt
+        cameras:
+          - random_orbits: {count: 24, seed: 0, elevation_deg: [0, 45]}
+        render:
+          resolution: 128
+        outputs:
+          channels: [color, alpha, depth, normal]"""
 
     count: Annotated[int, Field(ge=1, le=MAX_RANDOM_VIEWS)] = Field(
         description="views per object")
@@ -255,13 +266,12 @@ class RandomOrbitsConfig(_Strict):
               "bounding sphere (as `orbit`)"))
     target: Vec3 | None = Field(None, description="default: the scene's centre")
 
-    @model_validator(mode="after")
-    def _ordered(self) -> RandomOrbitsConfig:
-        for key in ("azimuth_deg", "elevation_deg", "distance"):
-            value = getattr(self, key)
-            if isinstance(value, list) and value[0] > value[1]:
-                raise ValueError(f"{key}: expected [min, max], got {value}")
-        return self
+    @field_validator("azimuth_deg", "elevation_deg", "distance")
+    @classmethod
+    def _ordered(cls, value: Any) -> Any:
+        if isinstance(value, list) and value[0] > value[1]:
+            raise ValueError(f"expected [min, max], got {value}")
+        return value
 
     def draw(self, seed: int) -> OrbitConfig:
         """The orbit of the view whose seed is ``seed`` (see :func:`stable_seed`)."""

@@ -23,6 +23,7 @@ the manifest.
 from __future__ import annotations
 
 import hashlib
+import itertools
 import math
 import os
 import sys
@@ -37,6 +38,10 @@ import torch
 
 from . import manifest, pipeline
 from .config import RenderFile
+
+
+class RankMismatchError(RuntimeError):
+    """The ranks of a run do not see the same views (not a shared filesystem?)."""
 
 
 @dataclass
@@ -199,7 +204,9 @@ class RunSummary:
     Attributes:
         total: views of all configs; ``skipped``: already done; ``written``: rendered now;
         ``failed``: reported and left out of the manifest; ``seconds``: wall time of the
-        rendering (scan to merge).
+        whole call (listing, scan, rendering, manifest); ``render_seconds``: of the
+        rendering alone (from the end of the scan until every rank is done);
+        ``render_cpu_seconds``: CPU time of the rendering, summed over the ranks.
     """
 
     total: int = 0
@@ -207,10 +214,13 @@ class RunSummary:
     written: int = 0
     failed: int = 0
     seconds: float = 0.0
+    render_seconds: float = 0.0
+    render_cpu_seconds: float = 0.0
 
     @property
     def views_per_second(self) -> float:
-        return self.written / self.seconds if self.seconds > 0 else 0.0
+        """Views written per second of rendering (all ranks together)."""
+        return self.written / self.render_seconds if self.render_seconds > 0 else 0.0
 
 
 @dataclass
@@ -262,8 +272,9 @@ def render_dataset(configs: list[DatasetConfig], out_dir: str | Path, *,
         The global :class:`RunSummary`.
 
     Raises:
-        RuntimeError: the ranks do not see the same views (different files, not a shared
-            filesystem?).
+        RankMismatchError: the ranks do not see the same views (different files, not a
+            shared filesystem?).
+        OutputError: the manifest cannot be written.
     """
     start = time.perf_counter()
     world = world if world is not None else init_world()
@@ -281,17 +292,18 @@ def render_dataset(configs: list[DatasetConfig], out_dir: str | Path, *,
         f"{j.key} {j.expected['config_hash']}" for j in jobs).encode()).hexdigest()[:16])
     seen = world.all_gather(digest)
     if any(d != seen[0] for d in seen):
-        raise RuntimeError("the ranks see different views (counts and hashes per rank: "
-                           f"{seen}); every rank needs the same config and mesh files "
-                           "(a shared filesystem mounted at the same path)")
+        raise RankMismatchError(f"the ranks see different views (count and hash per rank: "
+                                f"{seen}); every rank needs the same configs and mesh files "
+                                "(a shared filesystem)")
     # scan: each rank checks a strided slice, then all agree on what is left
-    done_here = []
+    done_here, records = [], {}
     if not force:
         records = manifest.load_records(out_dir)
         done_here = [i for i in range(world.rank, len(jobs), world.size)
                      if manifest.is_done(records.get(jobs[i].key), jobs[i].expected, out_dir)]
     done = {i for part in world.all_gather(done_here) for i in part}
     pending = [i for i in range(len(jobs)) if i not in done]
+    render_start, cpu_start = time.perf_counter(), time.process_time()
     mine = [pending[k] for k in block(len(pending), world.rank, world.size)]
     steps = math.ceil(len(pending) / world.size)
     bar = GlobalProgress(world, len(jobs), len(done), steps, enabled=progress)
@@ -300,29 +312,25 @@ def render_dataset(configs: list[DatasetConfig], out_dir: str | Path, *,
     written = failed = 0
     reported: set = set()
     shard = manifest.ShardWriter(out_dir)
-    try:
-        k = 0
-        while k < len(mine):  # one group of consecutive views of one object at a time
-            first = jobs[mine[k]]
-            group = [first]
-            while k + len(group) < len(mine) and (
-                    jobs[mine[k + len(group)]].config, jobs[mine[k + len(group)]].obj) == (
-                    first.config, first.obj):
-                group.append(jobs[mine[k + len(group)]])
-            k += len(group)
-            w, f = _render_group(group, configs[first.config], plans[first.config][first.obj],
-                                 out_dir, device, world, shard, bar, say, prefix, verbose,
-                                 show_traceback, reported)
+    try:  # one object at a time: its scene loads once for its consecutive views
+        for (ci, oi), grouped in itertools.groupby((jobs[i] for i in mine),
+                                                   key=lambda j: (j.config, j.obj)):
+            w, f = _render_group(list(grouped), configs[ci], plans[ci][oi], out_dir, device,
+                                 world, shard, bar, say, prefix, verbose, show_traceback,
+                                 reported)
             written, failed = written + w, failed + f
     finally:
         shard.close()
     bar.finish()
-    written, failed = world.all_sum([written, failed])
-    world.barrier()
+    cpu_us = round((time.process_time() - cpu_start) * 1e6)
+    written, failed, cpu_us = world.all_sum([written, failed, cpu_us])  # all ranks done
+    render_seconds = time.perf_counter() - render_start
     if world.rank == 0:
         expected = {j.key: j.expected for j in jobs}
-        manifest.write_manifest(out_dir, expected, {dc.name for dc in configs})
-    return RunSummary(len(jobs), len(done), written, failed, time.perf_counter() - start)
+        manifest.write_manifest(out_dir, expected, {dc.name for dc in configs},
+                                records=None if force else records)
+    return RunSummary(len(jobs), len(done), written, failed, time.perf_counter() - start,
+                      render_seconds, cpu_us / 1e6)
 
 
 def _render_group(group: list[_Job], dc: DatasetConfig, obj: pipeline.ObjectPlan,
@@ -376,5 +384,6 @@ def _render_group(group: list[_Job], dc: DatasetConfig, obj: pipeline.ObjectPlan
     return written, failed
 
 
-__all__ = ["DatasetConfig", "GlobalProgress", "RunSummary", "World", "block",
+__all__ = ["DatasetConfig", "GlobalProgress", "RankMismatchError", "RunSummary", "World",
+           "block",
            "current_rank_and_size", "init_world", "render_dataset", "seeded_call"]

@@ -67,12 +67,13 @@ def view_key(config: str, spec: ViewSpec) -> str:
 
 def config_hash(cfg: RenderFile) -> str:
     """A hash (16 hex digits) of everything in a one-object config that decides its pixels,
-    cameras excepted (compared one by one): every section, the mesh's path relative to the
-    config's folder and its size and modification time (an edited mesh re-renders)."""
+    cameras excepted (compared one by one): every section as written, and the mesh as its
+    file name, size and modification time (an edited mesh re-renders; moving the project,
+    or a config file, does not)."""
     data = cfg.model_dump(mode="json", exclude={"cameras"})
     if cfg.scene.mesh is not None:
         mesh = cfg.resolve(cfg.scene.mesh)
-        data["scene"]["mesh"] = os.path.relpath(mesh, cfg.base_dir.resolve())
+        data["scene"]["mesh"] = mesh.name
         try:
             st = mesh.stat()
             data["scene"]["mesh_stat"] = [st.st_size, st.st_mtime_ns]
@@ -203,16 +204,20 @@ def shard_files(out_dir: Path) -> list[Path]:
     return sorted(folder.glob("*.jsonl")) if folder.is_dir() else []
 
 
+def _overlay(records: dict[str, dict], paths: Iterable[Path]) -> dict[str, dict]:
+    """Add the records of ``paths`` to ``records`` (the most recently finished wins)."""
+    for path in paths:
+        for r in _read_jsonl(path):
+            old = records.get(r["key"])
+            if old is None or r.get("finished_at", 0) >= old.get("finished_at", 0):
+                records[r["key"]] = r
+    return records
+
+
 def load_records(out_dir: Path) -> dict[str, dict]:
     """Every record of ``out_dir``: ``manifest.jsonl`` then the shards; for a key recorded
     more than once, the most recently finished record wins."""
-    out: dict[str, dict] = {}
-    for path in [Path(out_dir) / MANIFEST, *shard_files(out_dir)]:
-        for r in _read_jsonl(path):
-            old = out.get(r["key"])
-            if old is None or r.get("finished_at", 0) >= old.get("finished_at", 0):
-                out[r["key"]] = r
-    return out
+    return _overlay({}, [Path(out_dir) / MANIFEST, *shard_files(out_dir)])
 
 
 def matches(record: dict | None, expected: dict) -> bool:
@@ -242,22 +247,39 @@ def is_done(record: dict | None, expected: dict, out_dir: Path) -> bool:
     return True
 
 
-def write_manifest(out_dir: Path, expected: dict[str, dict], configs: set[str]) -> int:
+def write_manifest(out_dir: Path, expected: dict[str, dict], configs: set[str],
+                   records: dict[str, dict] | None = None) -> int:
     """Merge ``manifest.jsonl`` and the shards into a new ``manifest.jsonl`` (atomically)
     and delete the merged shards. Records of configs not in ``configs`` are kept as they
     are; for the configs of this run, the manifest holds exactly the views of ``expected``
     (key -> :func:`expected_fields`, in order) whose record matches.
+
+    Args:
+        out_dir: the output folder.
+        expected: the views of this run.
+        configs: the config names of this run.
+        records: :func:`load_records` of ``out_dir`` read earlier in the run (the shards are
+            read again; saves parsing a large manifest twice). When there are no shards
+            and nothing changes, the manifest is not rewritten.
 
     Returns:
         The number of records of this run's views written.
     """
     out_dir = Path(out_dir)
     shards = shard_files(out_dir)
-    records = load_records(out_dir)
+    if records is None:
+        records = load_records(out_dir)
+        before = None
+    else:
+        before = list(records) if not shards else None
+        records = _overlay(dict(records), shards)
     lines = [r for r in records.values() if r.get("config") not in configs]
     ours = [records[k] for k, exp in expected.items() if matches(records.get(k), exp)]
-    text = "".join(json.dumps(r, separators=(",", ":")) + "\n" for r in lines + ours)
     sweep_temp_files(out_dir)
+    if not shards and before is not None and before == [r["key"] for r in lines + ours] and (
+            out_dir / MANIFEST).is_file():
+        return len(ours)  # nothing rendered, nothing dropped: the manifest is current
+    text = "".join(json.dumps(r, separators=(",", ":")) + "\n" for r in lines + ours)
 
     def write(tmp: str) -> None:
         with open(tmp, "w", encoding="utf-8") as f:

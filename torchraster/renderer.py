@@ -510,6 +510,7 @@ class Renderer(nn.Module):
         groups and the lights expanded to the batch."""
         positions = scene.positions
         faces = scene.faces
+        scene_bounds = _caster_bounds(positions, faces, face_ranges, b)  # what may receive
         cast = scene.cast_shadows
         if cast is not None:
             faces = faces[cast.to(faces.device)]
@@ -525,7 +526,7 @@ class Renderer(nn.Module):
             part = getattr(lights, kind).select(torch.tensor(ids))
             if kind == "directional":
                 g = directional_views(part.direction, settings, bounds, view.to(positions.dtype),
-                                      proj.to(positions.dtype))
+                                      proj.to(positions.dtype), receiver_bounds=scene_bounds)
             else:
                 g = local_views(kind, part.position,
                                 part.direction if kind == "spot" else None,
@@ -592,7 +593,8 @@ class _Visible:
 
 def _caster_bounds(positions: torch.Tensor, faces: torch.Tensor,
                    face_ranges: torch.Tensor | None, b: int) -> torch.Tensor:
-    """``(B, 2, 3)`` world bounds of the vertices of ``faces`` (per batch item)."""
+    """``(B, 2, 3)`` world bounds of the vertices of ``faces`` (per batch item): of the
+    shadow casters, or of the whole scene."""
     with torch.no_grad():
         pos = positions if positions.dim() == 3 else positions[None]
         used = torch.zeros(pos.shape[1], dtype=torch.bool, device=pos.device)

@@ -79,10 +79,21 @@ def setup_triangles(tris: ScreenTriangles) -> TriangleSetup:
     top_left = (ea > 0) | ((ea == 0) & (eb > 0))
     tiny = torch.finfo(x.dtype).tiny * torch.finfo(x.dtype).eps
     thresh = (~top_left).to(x.dtype).mul_(tiny)
-    # Depth plane relative to the canonical first vertex (the lexicographically smallest
-    # (x, y); a rotation keeps the winding), evaluated in that vertex order: the same
-    # triangle listed with its vertices rotated gets bit-identical depths, so exact
-    # duplicates tie and the lower face index wins. A constant depth stays exactly constant.
+    plane = depth_planes(x, y, z)
+    coef = torch.cat([ea, eb, ec, thresh, plane])
+    return TriangleSetup(coef=coef, box=tris.box, key_lo=tris.face, batch=tris.batch)
+
+
+def depth_planes(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    """Depth planes of N screen triangles: (5, N) rows dz/dx, dz/dy (per pixel), and the
+    reference vertex x, y and its NDC z (the rows DZDX .. REF_Z of the setup table).
+
+    x, y, z: (3, N) vertex rows (pixel x, pixel y, NDC z). The plane is written relative to
+    the canonical first vertex (the lexicographically smallest (x, y); a rotation keeps the
+    winding) and evaluated in that vertex order: the same triangle listed with its vertices
+    rotated gets bit-identical depths, so exact duplicates tie and the lower face index
+    wins. A constant depth stays exactly constant.
+    """
     x, y, z = _canonical_rotation(x, y, z)
     dz1, dz2 = z[1] - z[0], z[2] - z[0]
     dx1, dx2 = x[1] - x[0], x[2] - x[0]
@@ -91,8 +102,29 @@ def setup_triangles(tris: ScreenTriangles) -> TriangleSetup:
     area = torch.where(area == 0, torch.ones_like(area), area)  # culled later; no 0 / 0
     dzdx = (dz1 * dy2 - dz2 * dy1) / area
     dzdy = (dx1 * dz2 - dx2 * dz1) / area
-    coef = torch.cat([ea, eb, ec, thresh, dzdx[None], dzdy[None], x[:1], y[:1], z[:1]])
-    return TriangleSetup(coef=coef, box=tris.box, key_lo=tris.face, batch=tris.batch)
+    return torch.stack([dzdx, dzdy, x[0], y[0], z[0]])
+
+
+def plane_lower_bound(plane: torch.Tensor, box: torch.Tensor) -> torch.Tensor:
+    """A lower bound (N,) of the depth :func:`block_depth` computes at any pixel centre in
+    each triangle's pixel box (:func:`tested_boxes`): the plane's minimum over the box corners (a plane's minimum
+    over a box is at a corner) minus a bound on the float rounding of both evaluations
+    (16 unit roundoffs of the magnitudes involved, plus a tiny absolute term so that a
+    signed zero cannot tie).
+
+    Args:
+        plane: (5, N) rows of :func:`depth_planes`.
+        box: (4, N) int64 inclusive pixel boxes xmin, xmax, ymin, ymax.
+    """
+    dzdx, dzdy, x0, y0, z0 = plane
+    lo_x, hi_x = box[0].to(plane.dtype) - x0, box[1].to(plane.dtype) - x0
+    lo_y, hi_y = box[2].to(plane.dtype) - y0, box[3].to(plane.dtype) - y0
+    zx = torch.minimum(dzdx * lo_x, dzdx * hi_x)
+    zy = torch.minimum(dzdy * lo_y, dzdy * hi_y)
+    span = (dzdx.abs() * torch.maximum(lo_x.abs(), hi_x.abs())
+            + dzdy.abs() * torch.maximum(lo_y.abs(), hi_y.abs()) + z0.abs())
+    eps = torch.finfo(plane.dtype).eps  # 2 unit roundoffs
+    return z0 + zy + zx - 8 * eps * span - torch.finfo(plane.dtype).tiny
 
 
 def block_edge(coef: torch.Tensor, e: int, px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
@@ -119,7 +151,8 @@ def _canonical_rotation(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor):
         return (x[i] < x[j]) | ((x[i] == x[j]) & (y[i] <= y[j]))
 
     first = torch.where(before(0, 1) & before(0, 2), 0, torch.where(before(1, 2), 1, 2))
-    order = (first + torch.arange(3, device=x.device)[:, None]) % 3  # (3, N)
+    order = first + torch.arange(3, device=x.device)[:, None]  # (3, N), mod 3 below
+    order = torch.where(order >= 3, order - 3, order)
     return x.gather(0, order), y.gather(0, order), z.gather(0, order)
 
 
@@ -157,35 +190,51 @@ def block_sizes(tile: int) -> list[int]:
     return sorted(v for v in sizes if v <= tile)
 
 
-def sort_by_block(tris: ScreenTriangles, resolution: tuple[int, int], tile: int
+def _block_shapes(box: torch.Tensor, resolution: tuple[int, int], tile: int):
+    """(small (N,) bool, kh (N,), kw (N,)) of pixel boxes (4, N): whether a triangle gets
+    one block (box at most ``tile`` wide and high) and that block's :func:`block_sizes`
+    edge lengths (looked up in a table indexed by the box's size)."""
+    h, w = resolution
+    bw = box[1] - box[0] + 1
+    bh = box[3] - box[2] + 1
+    small = (bw <= tile) & (bh <= tile)
+    sizes = torch.tensor(block_sizes(tile), device=box.device)
+    lut = sizes[torch.searchsorted(sizes, torch.arange(tile + 1, device=box.device).clamp(1))]
+    kw = lut.index_select(0, bw.clamp(1, tile)).clamp_(max=w)
+    kh = lut.index_select(0, bh.clamp(1, tile)).clamp_(max=h)
+    return small, kh, kw
+
+
+def sort_by_block(tris: ScreenTriangles, resolution: tuple[int, int], tile: int,
+                  select: torch.Tensor | None = None
                   ) -> tuple[ScreenTriangles, list[tuple[int, int, int, int]], int]:
     """Order triangles by the block shape they need, so each shape is one contiguous run,
-    dropping the ones flagged invalid (culled) in the same gather.
+    keeping only the valid ones (or those listed in ``select``) in the same gather.
+
+    Args:
+        tris: N screen triangles (``tris.valid`` False = culled).
+        resolution: (H, W).
+        tile: the tile size of large triangles (and the largest block).
+        select: (M,) int64 indices of the triangles to keep (instead of ``tris.valid``).
 
     Returns the reordered triangles, the runs (kh, kw, start, count) of small triangles, and
     the index where the large triangles (boxes over ``tile`` pixels) begin.
     """
     h, w = resolution
-    box = tris.box
-    bw = box[1] - box[0] + 1
-    bh = box[3] - box[2] + 1
-    small = (bw <= tile) & (bh <= tile)
-    sizes = torch.tensor(block_sizes(tile), device=box.device)
-    kw = sizes[torch.searchsorted(sizes, bw.clamp(1, tile))].clamp(max=w)
-    kh = sizes[torch.searchsorted(sizes, bh.clamp(1, tile))].clamp(max=h)
+    if select is None and tris.valid is not None:
+        select = tris.valid.nonzero().squeeze(1)
+    box = tris.box if select is None else tris.box.index_select(1, select)
+    small, kh, kw = _block_shapes(box, resolution, tile)
     big_key = (h + 1) * (w + 1)
     shape_key = torch.where(small, kh * (w + 1) + kw, big_key)
-    if tris.valid is not None:  # culled triangles sort last and are cut off
-        shape_key = torch.where(tris.valid, shape_key, big_key + 1)
     shape_key, order = torch.sort(shape_key)
-    if tris.valid is not None:
-        n_valid = int(tris.valid.sum())
-        shape_key, order = shape_key[:n_valid], order[:n_valid]
     keys, counts = torch.unique_consecutive(shape_key, return_counts=True)
+    if select is not None:
+        order = select.index_select(0, order)
     tris = ScreenTriangles(
         pos=tris.pos.view(9, -1).index_select(1, order).view(3, 3, -1),
         area=tris.area.index_select(0, order),
-        box=box.index_select(1, order), face=tris.face.index_select(0, order),
+        box=tris.box.index_select(1, order), face=tris.face.index_select(0, order),
         batch=tris.batch.index_select(0, order))
     runs, start = [], 0
     for key, count in zip(keys.tolist(), counts.tolist(), strict=True):
@@ -194,6 +243,22 @@ def sort_by_block(tris: ScreenTriangles, resolution: tuple[int, int], tile: int
         start += count
     n_small = start - (counts[-1].item() if keys.numel() and keys[-1].item() == big_key else 0)
     return tris, runs, n_small
+
+
+def tested_boxes(box: torch.Tensor, resolution: tuple[int, int], tile: int) -> torch.Tensor:
+    """(4, N) int64 inclusive boxes xmin, xmax, ymin, ymax of every pixel centre that
+    :func:`bin_triangles` will test for triangles with pixel boxes ``box`` (4, N): the
+    small triangles' whole block (:func:`block_sizes`), the large ones' whole tiles. A
+    covered centre can lie outside the triangle's own box only by float rounding of the
+    edge functions, but never outside these."""
+    h, w = resolution
+    small, kh, kw = _block_shapes(box, resolution, tile)
+    th, tw = min(tile, h), min(tile, w)
+    x0 = torch.where(small, box[0].clamp(max=w - kw), ((box[0] // tile) * tile).clamp(max=w - tw))
+    y0 = torch.where(small, box[2].clamp(max=h - kh), ((box[2] // tile) * tile).clamp(max=h - th))
+    x1 = torch.where(small, x0 + kw, ((box[1] // tile) * tile).clamp(max=w - tw) + tw) - 1
+    y1 = torch.where(small, y0 + kh, ((box[3] // tile) * tile).clamp(max=h - th) + th) - 1
+    return torch.stack([x0, x1, y0, y1])
 
 
 def bin_triangles(

@@ -12,7 +12,7 @@ from typing import NamedTuple
 import torch
 
 from .._validate import check_tensor
-from .rasterize import Fragments
+from .rasterize import PIXEL_CHUNK, Fragments, gather_rows, pixel_slices
 
 
 def to_image(packed: torch.Tensor, frags: Fragments, fill: float = 0.0) -> torch.Tensor:
@@ -22,14 +22,8 @@ def to_image(packed: torch.Tensor, frags: Fragments, fill: float = 0.0) -> torch
     return flat.view(-1, b, h, w).transpose(0, 1)
 
 
-def interpolate_packed(
-    vertex_attrs: torch.Tensor, frags: Fragments, derivatives: bool = False
-) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
-    """Interpolate at the covered pixels only: (B, V, C) or (V, C) -> (C, N).
-
-    N = ``frags.pixels.numel()``; with ``derivatives`` also d/d col and d/d row, each
-    (C, N) (else None). Used by the G-buffer pass, which works on covered pixels only.
-    """
+def _check_attrs(vertex_attrs: torch.Tensor, frags: Fragments, derivatives: bool) -> torch.Tensor:
+    """Checked (B or 1, V, C) attributes (a (V, C) input gains the batch dimension)."""
     b = frags.face_id.shape[0]
     if isinstance(vertex_attrs, torch.Tensor) and vertex_attrs.dim() == 2:
         vertex_attrs = vertex_attrs.unsqueeze(0)
@@ -43,26 +37,127 @@ def interpolate_packed(
     n_vert, n_chan = vertex_attrs.shape[1:]
     if n_chan == 0:
         raise ValueError("vertex_attrs: expected at least one channel (C >= 1), got C = 0")
-    if frags.corners.numel() and int(frags.corners.max()) >= n_vert:
+    if frags.rows is not None:
+        used = frags.faces.index_select(0, frags.row_face) if frags.row_face.numel() else None
+    else:
+        used = frags.corners
+    if used is not None and used.numel() and int(used.max()) >= n_vert:
         raise ValueError(
             f"vertex_attrs: V={n_vert} is smaller than the mesh the fragments came from")
+    return vertex_attrs
+
+
+def _corner_table(vertex_attrs: torch.Tensor, frags: Fragments) -> torch.Tensor:
+    """(3, C, M) attributes of the three corners of every face row of ``frags``
+    (differentiable with respect to ``vertex_attrs`` (B or 1, V, C))."""
+    n_batch, n_vert, n_chan = vertex_attrs.shape
+    ids = frags.faces.index_select(0, frags.row_face).T  # (3, M)
+    if n_batch > 1:
+        ids = ids + frags.row_item * n_vert
+    attrs_t = vertex_attrs.permute(2, 0, 1).reshape(n_chan, -1)
+    flat = ids.reshape(-1)
+    # One 1-D gather per channel (faster than a dim-1 gather of the (C, B*V) table).
+    corner = torch.stack([a.index_select(0, flat) for a in attrs_t])  # (C, 3 M)
+    return corner.view(n_chan, 3, -1).transpose(0, 1).contiguous()
+
+
+class _Weigh(torch.autograd.Function):
+    """``value[c, p] = sum_i weights[i, p] table[i, c, rows[p]]``: the per-pixel gather and
+    weighted sum of :func:`interpolate_packed`, in cache-sized chunks, written either
+    packed (C, N) or straight into a (C, P) frame at ``pixels`` (zeros elsewhere).
+
+    Backward (closed form): d table = index_add over rows of ``weights_i * grad``, d weights
+    = the per-pixel dot product of ``grad`` with the gathered corners.
+    """
+
+    @staticmethod
+    def forward(ctx, table, weights, rows, pixels, frame):
+        three, n_chan, _ = table.shape
+        n = rows.numel()
+        weights = weights.to(table.dtype)
+        out = table.new_zeros(n_chan, frame) if frame else table.new_empty(n_chan, n)
+        c = min(n, PIXEL_CHUNK)
+        buf = table.new_empty(three * n_chan, c)
+        val = table.new_empty(n_chan, c) if frame else None
+        flat = table.view(three * n_chan, -1)
+        for sl in pixel_slices(n):
+            m = sl.stop - sl.start
+            g = gather_rows(flat, rows[sl], buf[:, :m]).view(three, n_chan, m)
+            wt = weights[:, sl]
+            dest = out[:, sl] if not frame else val[:, :m]
+            torch.mul(g[0], wt[0], out=dest).addcmul_(g[1], wt[1]).addcmul_(g[2], wt[2])
+            if frame:
+                out.index_copy_(1, pixels[sl], dest)
+        ctx.save_for_backward(table, weights, rows, pixels if frame else None)
+        ctx.set_materialize_grads(False)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad):
+        table, weights, rows, pixels = ctx.saved_tensors
+        if grad is None:
+            return None, None, None, None, None
+        if pixels is not None:
+            grad = grad.index_select(1, pixels)  # (C, N)
+        three, n_chan, _ = table.shape
+        g_table = torch.zeros_like(table) if ctx.needs_input_grad[0] else None
+        g_w = torch.empty_like(weights) if ctx.needs_input_grad[1] else None
+        flat = table.view(three * n_chan, -1)
+        for sl in pixel_slices(rows.numel()):
+            r, gr = rows[sl], grad[:, sl]
+            if g_table is not None:
+                for i in range(three):
+                    contrib = gr * weights[i, sl]
+                    for ch in range(n_chan):
+                        g_table[i, ch].index_add_(0, r, contrib[ch])
+            if g_w is not None:
+                g = flat.index_select(1, r).view(three, n_chan, -1)
+                g_w[:, sl] = (g * gr).sum(1)
+        return g_table, g_w, None, None, None
+
+
+def interpolate_packed(
+    vertex_attrs: torch.Tensor, frags: Fragments, derivatives: bool = False
+) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+    """Interpolate at the covered pixels only: (B, V, C) or (V, C) -> (C, N).
+
+    N = ``frags.pixels.numel()``; with ``derivatives`` also d/d col and d/d row, each
+    (C, N) (else None). Used by the G-buffer pass, which works on covered pixels only.
+    """
+    return _interpolate(vertex_attrs, frags, derivatives, image=False)
+
+
+def _interpolate(vertex_attrs, frags, derivatives, image):
+    """Values (and derivatives) packed (C, N) or as (B, C, H, W) images."""
+    vertex_attrs = _check_attrs(vertex_attrs, frags, derivatives)
+    weights = [frags.bary_packed] + ([frags.bary_dx_packed, frags.bary_dy_packed]
+                                     if derivatives else [])
+    if frags.rows is None:  # Fragments built by hand: gather every pixel's corners
+        outs = [_weigh_corners(vertex_attrs, frags, wt) for wt in weights]
+        outs = [to_image(o, frags) for o in outs] if image else outs
+    else:
+        table = _corner_table(vertex_attrs, frags)
+        b, h, w = frags.face_id.shape
+        frame = b * h * w if image else 0
+        outs = [_Weigh.apply(table, wt.T, frags.rows, frags.pixels, frame) for wt in weights]
+        if image:
+            outs = [o.view(-1, b, h, w).transpose(0, 1) for o in outs]
+    return (outs[0], None, None) if not derivatives else tuple(outs)
+
+
+def _weigh_corners(vertex_attrs: torch.Tensor, frags: Fragments,
+                   weights: torch.Tensor) -> torch.Tensor:
+    """(C, N) weighted sums of each pixel's corner attributes (``frags.corners``)."""
+    b = frags.face_id.shape[0]
+    n_vert, n_chan = vertex_attrs.shape[1:]
     ids = frags.corners
     if vertex_attrs.shape[0] == b and b > 1:
         ids = ids + frags.items * n_vert
-    # Component-major gather (C, 3, N): every row a contiguous vector.
     attrs_t = vertex_attrs.permute(2, 0, 1).reshape(n_chan, -1)
     flat_ids = ids.reshape(-1)
-    # One 1-D gather per channel (faster than a dim-1 gather of the (C, B*V) table).
     corner = torch.stack([a.index_select(0, flat_ids) for a in attrs_t]).view(n_chan, 3, -1)
-
-    def weigh(weights: torch.Tensor) -> torch.Tensor:  # (C, 3, N) x (3, N) -> (C, N)
-        wt = weights.T.to(corner.dtype)
-        return corner[:, 0] * wt[0] + corner[:, 1] * wt[1] + corner[:, 2] * wt[2]
-
-    value = weigh(frags.bary_packed)
-    if not derivatives:
-        return value, None, None
-    return value, weigh(frags.bary_dx_packed), weigh(frags.bary_dy_packed)
+    wt = weights.T.to(corner.dtype)
+    return corner[:, 0] * wt[0] + corner[:, 1] * wt[1] + corner[:, 2] * wt[2]
 
 
 class Interpolated(NamedTuple):
@@ -125,8 +220,7 @@ def interpolate(vertex_attrs: torch.Tensor, frags: Fragments, faces: torch.Tenso
         torch.Size([1, 3, 4, 4])
     """
     _check_interpolate_args(vertex_attrs, frags, faces)
-    value, _, _ = interpolate_packed(vertex_attrs, frags)
-    return to_image(value, frags)
+    return _interpolate(vertex_attrs, frags, False, image=True)[0]
 
 
 def interpolate_with_derivatives(
@@ -170,5 +264,4 @@ def interpolate_with_derivatives(
         (tensor([0.2500, 0.0000]), tensor([ 0.0000, -0.2500]))
     """
     _check_interpolate_args(vertex_attrs, frags, faces)
-    value, ddx, ddy = interpolate_packed(vertex_attrs, frags, derivatives=True)
-    return Interpolated(to_image(value, frags), to_image(ddx, frags), to_image(ddy, frags))
+    return Interpolated(*_interpolate(vertex_attrs, frags, True, image=True))

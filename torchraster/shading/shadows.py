@@ -23,8 +23,10 @@ Maps hold *linear* depth (distance along the light's view axis, metres), so bias
 world units: ``bias`` and ``slope_bias`` are multiples of the world size of one shadow-map
 texel at the receiver (constant + slope-scaled, Lengyel / "Common techniques to improve
 shadow depth maps", Microsoft 2011), and ``normal_bias`` moves the receiver along its normal
-by that many texels (normal-offset shadows, Holbert 2011). Defaults are measured in
-docs/benchmarks.md ("Shadows").
+by that many texels (normal-offset shadows, Holbert 2011). A PCF / PCSS tap ``r`` texels
+from the receiver's own map position adds ``r + 1`` more texels of the slope term (the depth
+of the receiver's plane there, conservatively), so filtered lookups do not shadow a tilted
+receiver. Defaults are measured in docs/benchmarks.md ("Shadows").
 
 Filters (``ShadowSettings.filter``):
 
@@ -105,11 +107,11 @@ class ShadowSettings:
     map_size: int = 1024
     filter: str = "pcf"
     pcf_radius: float = 1.5
-    pcf_taps: int = 16
+    pcf_taps: int = 8
     pcf_pattern: str = "poisson"
     bias: float = 1.0
-    slope_bias: float = 1.0
-    normal_bias: float = 1.0
+    slope_bias: float = 2.0
+    normal_bias: float = 0.0
     intensity: float = 1.0
     cascades: int = 1
     split_lambda: float = 0.75
@@ -368,14 +370,22 @@ def _camera_depth_range(view: torch.Tensor, bounds: torch.Tensor
 
 
 def directional_views(direction: torch.Tensor, settings: ShadowSettings, bounds: torch.Tensor,
-                      view: torch.Tensor, proj: torch.Tensor) -> ShadowMaps:
+                      view: torch.Tensor, proj: torch.Tensor,
+                      receiver_bounds: torch.Tensor | None = None) -> ShadowMaps:
     """Cascaded orthographic views of directional lights.
+
+    The map windows are differentiable functions of ``direction`` (texel snapping passes
+    the gradient straight through), so gradients with respect to the light direction
+    account for the window turning with the light.
 
     Args:
         direction: ``(B, Ls, 3)`` travel directions (need not be unit).
         settings: shared by the Ls lights.
         bounds: ``(B, 2, 3)`` world bounds of the casters (row 0 min, row 1 max).
         view, proj: ``(B, 4, 4)`` the camera (the cascades split its depth range).
+        receiver_bounds: ``(B, 2, 3)`` world bounds of the surfaces that may be shadowed
+            (the cascades cover the camera depths of this box; default ``bounds``). Casters
+            outside the camera's view (e.g. behind it) still cast onto these.
 
     Returns:
         :class:`ShadowMaps` without depth (see :func:`render_shadow_maps`).
@@ -386,7 +396,8 @@ def directional_views(direction: torch.Tensor, settings: ShadowSettings, bounds:
     fwd = safe_normalize(direction, dim=-1)
     rot = _basis_from_forward(fwd)  # (B, Ls, 3, 3), differentiable in direction
     with torch.no_grad():
-        near_c, far_c = _camera_depth_range(view, bounds)
+        near_c, far_c = _camera_depth_range(
+            view, bounds if receiver_bounds is None else receiver_bounds)
         if settings.max_distance is not None:
             far_c = far_c.clamp_max(settings.max_distance)
             near_c = torch.minimum(near_c, far_c * 0.5)
@@ -399,38 +410,40 @@ def directional_views(direction: torch.Tensor, settings: ShadowSettings, bounds:
         pts = torch.cat([slice_lo, slice_hi], 2)  # (B, C, 8, 3) float64
         centre = pts.mean(2)  # (B, C, 3)
         radius = (pts - centre[:, :, None]).norm(dim=-1).amax(-1)  # (B, C)
-        r64 = rot.detach().to(torch.float64)  # (B, Ls, 3, 3)
-        centre_l = torch.einsum("blij,bcj->blci", r64, centre)  # light-space centres
-        texel = 2 * radius[:, None].expand(b, n_lights, c) / settings.map_size
-        snapped = torch.floor(centre_l[..., :2] / texel[..., None]) * texel[..., None]
-        lo = snapped - radius[:, None, :, None]
-        hi = snapped + radius[:, None, :, None]
-        # casters' box in light space
         corners = _box_corners(bounds.to(torch.float64))  # (B, 8, 3)
-        corners_l = torch.einsum("blij,bkj->blki", r64, corners)  # (B, Ls, 8, 3)
-        box_lo, box_hi = corners_l.amin(2), corners_l.amax(2)  # (B, Ls, 3)
-        box_size = (box_hi[..., :2] - box_lo[..., :2]).amax(-1)  # (B, Ls)
-        use_box = (box_size[..., None] <= 2 * radius[:, None]).expand(b, n_lights, c)
-        pad = box_size[..., None].expand(b, n_lights, c)[..., None] * 1e-3 + 1e-6
-        blo = (box_lo[..., None, :2] - pad).expand(b, n_lights, c, 2)
-        bhi = (box_hi[..., None, :2] + pad).expand(b, n_lights, c, 2)
-        lo = torch.where(use_box[..., None], blo, lo)
-        hi = torch.where(use_box[..., None], bhi, hi)
-        texel = torch.where(use_box, (bhi - blo).amax(-1) / settings.map_size, texel)
-        # a cascade that does not overlap the casters' box covers nothing
-        covers = ((lo < box_hi[..., None, :2]) & (hi > box_lo[..., None, :2])).all(-1)
-        # light-space depth: the light looks along -z (back = -fwd), depth = -z_light
-        depth_lo = -box_hi[..., 2]  # (B, Ls)
-        depth_hi = -box_lo[..., 2]
-        span = (depth_hi - depth_lo).clamp_min(1e-6)
-        # the view's eye sits a margin in front of the nearest caster
-        eye_depth = depth_lo - 0.01 * span - 1e-4
-        near = torch.full_like(texel, 0.0) + (depth_lo - eye_depth)[..., None] * 0.5
-        far = (depth_hi - eye_depth)[..., None].expand_as(texel) * 1.01 + 1e-6
-        far = torch.maximum(far, near * 2)
-        # eye in light space: x = y = 0, z = -eye_depth (depth = -z)
-    eye_l = torch.zeros(b, n_lights, 3, dtype=torch.float64, device=direction.device)
-    eye_l[..., 2] = -eye_depth
+    r64 = rot.to(torch.float64)  # (B, Ls, 3, 3)
+    centre_l = torch.einsum("blij,bcj->blci", r64, centre)  # light-space centres
+    texel = 2 * radius[:, None].expand(b, n_lights, c) / settings.map_size
+    # whole texels (no shimmer), gradient straight through
+    xy = centre_l[..., :2]
+    snapped = xy + (torch.floor(xy.detach() / texel[..., None]) * texel[..., None] - xy.detach())
+    lo = snapped - radius[:, None, :, None]
+    hi = snapped + radius[:, None, :, None]
+    # casters' box in light space
+    corners_l = torch.einsum("blij,bkj->blki", r64, corners)  # (B, Ls, 8, 3)
+    box_lo, box_hi = corners_l.amin(2), corners_l.amax(2)  # (B, Ls, 3)
+    box_size = (box_hi[..., :2] - box_lo[..., :2]).amax(-1)  # (B, Ls)
+    use_box = (box_size.detach()[..., None] <= 2 * radius[:, None]).expand(b, n_lights, c)
+    pad = box_size[..., None].expand(b, n_lights, c)[..., None] * 1e-3 + 1e-6
+    blo = (box_lo[..., None, :2] - pad).expand(b, n_lights, c, 2)
+    bhi = (box_hi[..., None, :2] + pad).expand(b, n_lights, c, 2)
+    lo = torch.where(use_box[..., None], blo, lo)
+    hi = torch.where(use_box[..., None], bhi, hi)
+    texel = torch.where(use_box, (bhi - blo).amax(-1) / settings.map_size, texel)
+    # a cascade that does not overlap the casters' box covers nothing
+    covers = ((lo < box_hi[..., None, :2]) & (hi > box_lo[..., None, :2])).all(-1).detach()
+    # light-space depth: the light looks along -z (back = -fwd), depth = -z_light
+    depth_lo = -box_hi[..., 2]  # (B, Ls)
+    depth_hi = -box_lo[..., 2]
+    span = (depth_hi - depth_lo).clamp_min(1e-6)
+    # the view's eye sits a margin in front of the nearest caster
+    eye_depth = depth_lo - 0.01 * span - 1e-4
+    near = torch.zeros_like(texel) + (depth_lo - eye_depth)[..., None] * 0.5
+    far = (depth_hi - eye_depth)[..., None].expand_as(texel) * 1.01 + 1e-6
+    far = torch.maximum(far, near * 2)
+    # eye in light space: x = y = 0, z = -eye_depth (depth = -z)
+    eye_l = torch.stack([torch.zeros_like(eye_depth), torch.zeros_like(eye_depth),
+                         -eye_depth], -1)
     # world eye = rot^T eye_l (rot is orthonormal), differentiable through rot
     eye = (rot.transpose(-1, -2) @ eye_l.to(dtype)[..., None])[..., 0]  # (B, Ls, 3)
     v = _view_matrix(rot, eye)[:, :, None].expand(b, n_lights, c, 4, 4)
@@ -640,8 +653,10 @@ def _select_view(g: ShadowMaps, p: torch.Tensor, item: torch.Tensor,
 def _project(g: ShadowMaps, p: torch.Tensor, n: torch.Tensor, item: torch.Tensor,
              view_idx: torch.Tensor):
     """Map coordinates of receivers: texel x, y ``(P, Ls)`` (continuous, texel centres at
-    integers), receiver depth with bias ``(P, Ls)``, texel size at the receiver (m) and the
-    flat map index ``(P, Ls)``."""
+    integers), receiver depth with bias ``(P, Ls)``, texel size at the receiver (m), the
+    flat map index ``(P, Ls)``, validity and the slope-scaled depth ramp ``(P, Ls)`` (m per
+    texel of lookup offset: a filter tap ``r`` texels away compares against the receiver's
+    depth minus ``r`` ramps, so a tilted receiver does not shadow itself)."""
     n_l, nv = g.view.shape[1], g.view.shape[2]
     size = g.settings.map_size
     v_safe = view_idx.clamp_min(0)
@@ -670,7 +685,7 @@ def _project(g: ShadowMaps, p: torch.Tensor, n: torch.Tensor, item: torch.Tensor
     ty = (1 - y_ndc) * (size / 2) - 0.5
     z_ref = -q[..., 2] - world_texel * (s.bias + s.slope_bias * tan)
     valid = (view_idx >= 0) & (w > 1e-12)
-    return tx, ty, z_ref, world_texel, sel, valid
+    return tx, ty, z_ref, world_texel, sel, valid, world_texel * s.slope_bias * tan
 
 
 def _fetch(maps: torch.Tensor, sel: torch.Tensor, x: torch.Tensor, y: torch.Tensor,
@@ -688,8 +703,8 @@ def _fetch(maps: torch.Tensor, sel: torch.Tensor, x: torch.Tensor, y: torch.Tens
 def _pcf(maps: torch.Tensor, sel: torch.Tensor, tx: torch.Tensor, ty: torch.Tensor,
          z_ref: torch.Tensor, size: int, bilinear: bool = True) -> torch.Tensor:
     """Visibility of comparisons at map positions ``tx``, ``ty`` ``(P, Ls, T)`` against
-    ``z_ref`` ``(P, Ls, 1)``: bilinearly weighted 4-texel comparisons (or the nearest
-    texel), averaged over T. Outside the map = lit."""
+    ``z_ref`` ``(P, Ls, 1)`` or per tap ``(P, Ls, T)``: bilinearly weighted 4-texel
+    comparisons (or the nearest texel), averaged over T. Outside the map = lit."""
     if not bilinear:
         d, inside = _fetch(maps, sel, torch.round(tx).long(), torch.round(ty).long(), size)
         lit = ((z_ref <= d) | ~inside).to(tx.dtype)
@@ -729,7 +744,7 @@ def _visibility_of_view(g: ShadowMaps, p, n, item, view_idx) -> torch.Tensor:
     """``(P, Ls)`` visibility of receivers in the views ``view_idx`` ``(P, Ls)``."""
     s = g.settings
     size = s.map_size
-    tx, ty, z_ref, world_texel, sel, valid = _project(g, p, n, item, view_idx)
+    tx, ty, z_ref, world_texel, sel, valid, ramp = _project(g, p, n, item, view_idx)
     if s.filter == "vsm":
         maps = g.depth.reshape(-1, 2, size * size)
         m = _bilinear(maps, sel, tx, ty, size)
@@ -753,14 +768,19 @@ def _visibility_of_view(g: ShadowMaps, p, n, item, view_idx) -> torch.Tensor:
     taps = tap_pattern(s, p.dtype, p.device)  # (T, 2)
     radius = torch.full_like(tx, float(s.pcf_radius))
     if s.filter == "pcss":
-        radius = _pcss_radius(g, maps, sel, tx, ty, z_ref, world_texel, taps)
+        radius = _pcss_radius(g, maps, sel, tx, ty, z_ref, world_texel, taps, ramp)
+    # each tap against the receiver plane's depth there (+1 texel: the bilinear footprint)
+    z_taps = z_ref[..., None] - ramp[..., None] * (taps.norm(dim=-1) * radius[..., None] + 1)
     vis = _pcf(maps, sel, tx[..., None] + taps[:, 0] * radius[..., None],
-               ty[..., None] + taps[:, 1] * radius[..., None], z_ref[..., None], size)
+               ty[..., None] + taps[:, 1] * radius[..., None], z_taps, size)
     return torch.where(valid, vis, torch.ones_like(vis))
 
 
-def _pcss_radius(g: ShadowMaps, maps, sel, tx, ty, z_ref, world_texel, taps) -> torch.Tensor:
-    """PCSS filter radius (texels) ``(P, Ls)`` from a blocker search (Fernando 2005)."""
+def _pcss_radius(g: ShadowMaps, maps, sel, tx, ty, z_ref, world_texel, taps, ramp
+                 ) -> torch.Tensor:
+    """PCSS filter radius (texels) ``(P, Ls)`` from a blocker search (Fernando 2005); the
+    receiver itself is no blocker (each search tap compares against the receiver plane's
+    depth there, ``ramp`` m per texel, see :func:`_project`)."""
     s = g.settings
     size = s.map_size
     with torch.no_grad():
@@ -778,7 +798,8 @@ def _pcss_radius(g: ShadowMaps, maps, sel, tx, ty, z_ref, world_texel, taps) -> 
         x = torch.round(tx[..., None] + taps[:, 0] * search[..., None]).long()
         y = torch.round(ty[..., None] + taps[:, 1] * search[..., None]).long()
         d, inside = _fetch(maps, sel, x, y, size)
-        blocker = inside & (d < z_ref[..., None])
+        z_taps = z_ref[..., None] - ramp[..., None] * (taps.norm(dim=-1) * search[..., None] + 1)
+        blocker = inside & (d < z_taps)
         count = blocker.sum(-1)
         d_blk = torch.where(blocker, d, torch.zeros_like(d)).sum(-1) / count.clamp_min(1)
         if g.perspective:

@@ -11,11 +11,12 @@ is lit by a light when the segment (or ray) from it to the light crosses no cast
   position and facing the receiver (point / spot), or a cone of angular diameter ``angle``
   degrees around ``-direction`` (directional: a disc at infinity, e.g. the sun's 0.53 deg).
 
-Comparing with the engine (:func:`render_shadow_factor`, :func:`reference_for`,
-:func:`mask_stats`; the only functions here that import ``torchraster``, lazily): the
-engine's shadow factor of a pixel is the ratio of a render with shadows to the same render
-without (one light, no ambient), read through the public ``Renderer``; the reference traces
-rays from the same G-buffer positions and normals.
+Comparing with the engine: :func:`make_lights`, :func:`render_shadow_factor` and
+:func:`grazing_plane_shot` (the only functions here that import ``torchraster``, lazily)
+read the engine's shadow factor of a pixel as the ratio of a render with shadows to the same
+render without (one light, no ambient) through the public ``Renderer``; :func:`reference_for`
+traces rays from the same G-buffer positions and normals, :func:`mask_stats` compares
+masks. Scenes: :func:`ground_scene`, :func:`sphere_on_plane`, :func:`field_of_spheres`.
 
 Ray epsilon: each ray starts at ``point + eps * normal`` (``eps`` = :data:`RAY_EPSILON`,
 1e-4 m for metre-scale scenes; scale it with the scene) and every triangle hit with
