@@ -212,7 +212,10 @@ def benchmark_body(args: argparse.Namespace, result: dict) -> str:
     return (
         "## Inverse rendering\n\n"
         "The `examples/` inverse-rendering suite (`examples/README.md`): what each "
-        "optimisation recovers, its error per iteration and its time per iteration.\n\n"
+        "optimisation recovers, its error per iteration and its time per iteration. The "
+        "runs shared the 2-core machine with other jobs (load average 3-4), so times per "
+        "iteration vary by up to 2x from run to run: compare times within one run. The "
+        "errors are reproducible (identical over repeated runs).\n\n"
         f"### Camera pose from silhouettes ({result['mesh']}, {args.views} cameras, "
         f"{args.resolution}², {args.iterations} iterations)\n\n"
         f"6-DoF camera poses perturbed by {args.perturb_deg:g}° about a random axis and "
