@@ -124,7 +124,7 @@ _SHADOW_CHANGES: dict[str, tuple[dict, dict]] = {
     "enabled": ({}, {"enabled": False}),
     "map_size": ({"filter": "hard"}, {"map_size": 8}),
     "filter": ({"filter": "hard", "map_size": 32}, {"filter": "vsm"}),
-    "pcf_radius": ({"filter": "pcf"}, {"pcf_radius": 6.0}),
+    "pcf_radius": ({"filter": "pcf", "map_size": 32}, {"pcf_radius": 6.0}),
     "pcf_taps": ({"filter": "pcf", "pcf_radius": 4.0, "map_size": 32}, {"pcf_taps": 2}),
     "pcf_pattern": ({"filter": "pcf", "pcf_radius": 4.0, "pcf_taps": 9},
                     {"pcf_pattern": "grid"}),

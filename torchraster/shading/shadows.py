@@ -107,7 +107,7 @@ class ShadowSettings:
     map_size: int = 1024
     filter: str = "pcf"
     pcf_radius: float = 1.5
-    pcf_taps: int = 8
+    pcf_taps: int = 4
     pcf_pattern: str = "poisson"
     bias: float = 1.0
     slope_bias: float = 2.0
