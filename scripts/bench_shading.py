@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import torch
+from bench_frame import timed_turns
 from benchmd import markdown_table, update_section
 
 from torchraster.config import lights_from_config
@@ -75,7 +76,13 @@ def timed(fn, repeats: int) -> float:
     return statistics.median(times)
 
 
-def run_pass(g, lights, backward: bool, chunk: int | None = None):
+def generic_cook_torrance(n, v, l, surface):
+    """The default BRDF through the generic per-light model path (the previous algorithm:
+    RGB tensors per light, no fused pass), for the before/after columns."""
+    return MODELS["cook_torrance"](n, v, l, surface)
+
+
+def run_pass(g, lights, backward: bool, chunk: int | None = None, model="cook_torrance"):
     pos, n, albedo, metallic, rough, mask, cam = g
 
     def fn():
@@ -92,6 +99,7 @@ def run_pass(g, lights, backward: bool, chunk: int | None = None):
                 camera_position=cam,
                 lights=lights,
                 light_chunk=chunk,
+                model=model,
             )
             out.sum().backward()
         else:
@@ -108,6 +116,7 @@ def run_pass(g, lights, backward: bool, chunk: int | None = None):
                     camera_position=cam,
                     lights=lights,
                     light_chunk=chunk,
+                    model=model,
                 )
 
     return fn
@@ -295,6 +304,7 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=4)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--quick", action="store_true", help="128x128, batch 1, no doc update")
+    ap.add_argument("--threads", type=int, default=None, help="torch intra-op threads")
     ap.add_argument("--pictures", action="store_true", help="only write docs/images/shading_*")
     args = ap.parse_args()
     if args.pictures:
@@ -303,38 +313,68 @@ def main() -> None:
     if args.quick:
         args.size, args.batch, args.repeats = 128, 1, 2
     b, s = args.batch, args.size
+    if args.threads:
+        torch.set_num_threads(args.threads)
     torch.manual_seed(0)
 
-    # 1. run time against number of lights
+    # 1. run time against number of lights: the fused pass (default) against the generic
+    # model path (the previous algorithm), timed in turns
     g_fwd = gbuffer(b, s, s)
     g_bwd = gbuffer(b, s, s, requires_grad=True)
     for g, bwd in ((g_fwd, False), (g_bwd, True)):  # warm up the allocator at full size
         run_pass(g, point_lights(4, b), bwd)()
+    mpix = b * s * s / 1e6
     rows = []
     for count in (1, 4, 16, 64):
         lights = point_lights(count, b)
-        t_f = timed(run_pass(g_fwd, lights, False), args.repeats)
-        t_b = timed(run_pass(g_bwd, lights, True), args.repeats)
-        rows.append([count, t_f * 1e3, t_b * 1e3, t_f * 1e3 / count, t_b / t_f])
-        print(f"lights={count}: fwd {t_f * 1e3:.1f} ms, fwd+bwd {t_b * 1e3:.1f} ms", flush=True)
-    per_chunk = max(1, LIGHT_CHUNK_ELEMENTS // (b * s * s))
+        fns = {(bwd, name): run_pass(g_bwd if bwd else g_fwd, lights, bwd, model=model)
+               for bwd in (False, True)
+               for name, model in (("fused", "cook_torrance"), ("generic", generic_cook_torrance))}
+        reps = args.repeats if count < 64 else 1
+        t = {k: statistics.median(v) for k, v in timed_turns(fns, reps).items()}
+        per = {k: v * 1e3 / count / mpix for k, v in t.items()}
+        rows.append([count, t[(False, "generic")] * 1e3, t[(False, "fused")] * 1e3,
+                     t[(False, "generic")] / t[(False, "fused")],
+                     t[(True, "generic")] * 1e3, t[(True, "fused")] * 1e3,
+                     t[(True, "generic")] / t[(True, "fused")],
+                     per[(False, "fused")], per[(True, "fused")]])
+        print(" | ".join(f"{v:.4g}" if isinstance(v, float) else str(v) for v in rows[-1]),
+              flush=True)
     table1 = markdown_table(
         [
             "point lights",
+            "forward ms, before",
             "forward ms",
-            "forward+backward ms",
-            "forward ms / light",
-            "fwd+bwd / fwd",
+            "speed-up",
+            "fwd+bwd ms, before",
+            "fwd+bwd ms",
+            "speed-up",
+            "forward ms / light / MP",
+            "fwd+bwd ms / light / MP",
         ],
         rows,
     )
+    # 1b. lights that reach few pixels: 64 point lights of range 0.3 m scattered over the
+    # spheres (the fused pass evaluates the BRDF only where a light reaches)
+    g = torch.Generator().manual_seed(1)
+    xy = torch.rand(64, 2, generator=g) * 1.6 - 0.8
+    small = lights_from_config([{"type": "point", "position": [float(x), float(y), 1.0],
+                                 "intensity": 0.2, "range": 0.3} for x, y in xy.tolist()],
+                               batch=b)
+    fns = {(False, name): run_pass(g_fwd, small, False, model=model)
+           for name, model in (("fused", "cook_torrance"), ("generic", generic_cook_torrance))}
+    t = {k: statistics.median(v) for k, v in timed_turns(fns, 1).items()}
+    sparse_row = [[64, "0.3 m", t[(False, "generic")] * 1e3, t[(False, "fused")] * 1e3,
+                   t[(False, "generic")] / t[(False, "fused")]]]
+    print(sparse_row, flush=True)
+    table_sparse = markdown_table(["point lights", "range", "forward ms, before",
+                                   "forward ms", "speed-up"], sparse_row)
 
     # 2. lights as a tensor dimension vs a Python loop over lights (same result)
     rows2 = []
     for size, batch, count in ((s, b, 16), (64, 1, 64)):
         g = gbuffer(batch, size, size)
         lights = point_lights(count, batch)
-        chunk = max(1, LIGHT_CHUNK_ELEMENTS // (batch * size * size))
         pos, n, albedo, metallic, rough, mask, cam = g
         with torch.no_grad():
             a = shade(
@@ -369,7 +409,7 @@ def main() -> None:
             [
                 f"{size}x{size}, batch {batch}",
                 count,
-                min(chunk, count),
+                count,  # the fused pass (no visibility hook) takes every light at once
                 t_loop * 1e3,
                 t_vec * 1e3,
                 t_loop / t_vec,
@@ -385,7 +425,7 @@ def main() -> None:
         [
             "G-buffer",
             "point lights",
-            "lights per chunk",
+            "lights per evaluation",
             "Python loop ms",
             "tensor dim ms",
             "loop / tensor",
@@ -397,14 +437,21 @@ def main() -> None:
     body = (
         "## shading\n\n"
         f"Deferred lighting pass (`torchraster.shading.shade`, Cook-Torrance, point lights "
-        f"with range), {s}x{s} G-buffer, batch {b}, float32, CPU; median of "
-        f"{args.repeats} runs ({5 * args.repeats} for runs under 0.5 s) after one warm-up (for "
-        f"runs over 1 s the warm-up is a sample). "
-        f"Lights are evaluated as a tensor "
-        f"dimension in chunks of {per_chunk} (budget `LIGHT_CHUNK_ELEMENTS` = "
-        f"{LIGHT_CHUNK_ELEMENTS} pixel-lights); with autograd and more than one chunk each "
-        f"chunk is recomputed in backward (checkpointing) so memory stays flat in L.\n\n"
+        f"with range), {s}x{s} G-buffer (unit spheres filling 79 % of it), batch {b}, float32, "
+        f"CPU, {torch.get_num_threads()} torch thread(s); medians of {args.repeats} turns "
+        "(1 for 64 lights) after a warm-up. *before* = the same BRDF through the generic "
+        "model path (a callable model: RGB tensors per light over the whole frame, the "
+        "algorithm the fused pass replaced), timed in the same run. The fused pass "
+        "(`cook_torrance_lights`) works on the covered pixels only, with the lights a tensor "
+        "dimension, colour applied by three small matmuls, in chunks of "
+        "`PIXEL_LIGHT_CHUNK` pixel-lights; with autograd, chunks are recomputed in backward "
+        "(checkpointing) when the graph would exceed `LIGHT_CHUNK_ELEMENTS` = "
+        f"{LIGHT_CHUNK_ELEMENTS} pixel-lights, so memory stays flat in L. MP = "
+        f"{mpix:.2f} megapixels of G-buffer.\n\n"
         f"{table1}\n\n"
+        "Lights that reach few pixels (the BRDF is evaluated only where n.l > 0, inside the "
+        "range and cone, and visible):\n\n"
+        f"{table_sparse}\n\n"
         "Lights as a tensor dimension (default chunking) vs a Python loop over lights "
         "(`light_chunk=1`), forward only, same result:\n\n"
         f"{table2}\n\n"

@@ -107,8 +107,9 @@ def depth_planes(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor) -> torch.Ten
 
 def plane_lower_bound(plane: torch.Tensor, box: torch.Tensor) -> torch.Tensor:
     """A lower bound (N,) of the depth :func:`block_depth` computes at any pixel centre in
-    each triangle's pixel box (:func:`tested_boxes`): the plane's minimum over the box corners (a plane's minimum
-    over a box is at a corner) minus a bound on the float rounding of both evaluations
+    each triangle's box of tested centres (:func:`tested_boxes`): the plane's minimum over
+    the box corners (a plane's minimum over a box is at a corner) minus a bound on the float
+    rounding of both evaluations
     (16 unit roundoffs of the magnitudes involved, plus a tiny absolute term so that a
     signed zero cannot tie).
 
@@ -161,7 +162,9 @@ class Records:
     """Blocks of kh x kw pixel centres to test, R records of one block shape.
 
     tri: the records' triangles in the TriangleSetup: a slice (a run of consecutive
-    triangles, no gather needed) or an (R,) int64 index; x0, y0: (R,) int64 block origin.
+    triangles, no gather needed) or an (R,) int64 index; x0, y0: (R,) int64 block origin;
+    full: every centre of every block is proven covered (:func:`_classify_blocks`), so the
+    coverage test can be skipped.
     """
 
     kh: int
@@ -169,6 +172,7 @@ class Records:
     tri: slice | torch.Tensor
     x0: torch.Tensor
     y0: torch.Tensor
+    full: bool = False
 
     def take(self, values: torch.Tensor) -> torch.Tensor:
         """The records' entries of a per-triangle tensor (last dimension = triangles)."""
@@ -315,8 +319,58 @@ def _bin_large(
         keep = keep.nonzero()
         keep = keep.squeeze(1)
         tri, x0, y0 = tri.index_select(0, keep), x0.index_select(0, keep), y0.index_select(0, keep)
+        if margin == 0 and th % SUB_BLOCK == 0 and tw % SUB_BLOCK == 0 and th * tw > SUB_BLOCK ** 2:
+            yield from _sub_blocks(setup, tri, x0, y0, th, tw, max_candidates)
+            continue
         for s in range(0, tri.numel(), per_chunk):
             yield Records(th, tw, tri[s:s + per_chunk], x0[s:s + per_chunk], y0[s:s + per_chunk])
+
+
+#: Side of the sub-blocks a large triangle's tiles are split into (:func:`_sub_blocks`).
+SUB_BLOCK = 8
+
+
+def _sub_blocks(setup: TriangleSetup, tri: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor,
+                th: int, tw: int, max_candidates: int) -> Iterator[Records]:
+    """Split (triangle, tile) pairs into SUB_BLOCK-square blocks, drop the blocks outside an
+    edge, and yield the blocks proven fully covered as ``full`` records (no per-pixel edge
+    test, no search for covered centres) and the others as ordinary records."""
+    s = SUB_BLOCK
+    oy, ox = torch.meshgrid(torch.arange(0, th, s, device=tri.device),
+                            torch.arange(0, tw, s, device=tri.device), indexing="ij")
+    n_sub = ox.numel()
+    step = max(1, max_candidates // (th * tw))
+    for c in range(0, tri.numel(), step):
+        t = tri[c:c + step].repeat_interleave(n_sub)
+        bx = (x0[c:c + step, None] + ox.reshape(1, -1)).reshape(-1)
+        by = (y0[c:c + step, None] + oy.reshape(1, -1)).reshape(-1)
+        coef = setup.coef.index_select(1, t)
+        full, inside = _classify_blocks(coef, bx, by, s)
+        for flag in (True, False):
+            sel = (full if flag else inside & ~full).nonzero().squeeze(1)
+            per = max(1, max_candidates // (s * s))
+            for k in range(0, sel.numel(), per):
+                ids = sel[k:k + per]
+                yield Records(s, s, t.index_select(0, ids), bx.index_select(0, ids),
+                              by.index_select(0, ids), full=flag)
+
+
+def _classify_blocks(coef: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, size: int
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(full (R,), may_overlap (R,)) of size x size blocks of pixel centres at (x0, y0).
+
+    Full is exact: each edge function is evaluated with :func:`block_edge`'s float ops at
+    the block's corner where it is smallest (float rounding is monotone, so ``A x + (B y +
+    C)`` never decreases towards the other corners along the signs of A and B); if that
+    corner passes the edge's tie threshold, every centre of the block does. may_overlap is
+    the conservative test of :func:`_tile_may_overlap`.
+    """
+    ea, eb, ec = coef[EDGE_A], coef[EDGE_B], coef[EDGE_C]  # (3, R) each
+    px = torch.where(ea > 0, x0, x0 + (size - 1)).to(coef.dtype)
+    py = torch.where(eb > 0, y0, y0 + (size - 1)).to(coef.dtype)
+    worst = (eb * py + ec) + ea * px
+    full = (worst >= coef[EDGE_MIN]).all(dim=0)
+    return full, _tile_may_overlap(coef, x0, y0, size, size)
 
 
 def _tile_may_overlap(coef: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, th: int,

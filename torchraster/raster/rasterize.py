@@ -19,7 +19,6 @@ The soft rasterizer (``soft.py``) reuses pass 1 with a wider :class:`Coverage`.
 
 from __future__ import annotations
 
-
 import torch
 
 from .._validate import check_frame_memory, check_resolution, check_tensor
@@ -493,6 +492,14 @@ def covered_keys(setup: TriangleSetup, rec: Records, resolution: tuple[int, int]
     """
     coef = rec.take(setup.coef)  # (COEF_ROWS, R)
     px, py = record_centres(rec, coef.dtype)
+    if rec.full:  # every centre is covered: keys in the record layout, no search
+        h, w = resolution
+        local = (torch.arange(rec.kh, device=px.device)[:, None] * w
+                 + torch.arange(rec.kw, device=px.device)).view(-1, 1)
+        base = rec.take(setup.batch) * (h * w) + rec.y0 * w + rec.x0
+        face = rec.take(setup.key_lo).expand(rec.kh * rec.kw, -1).reshape(-1)
+        depth = block_depth(coef, px, py).view(-1)
+        return (local + base).view(-1), depth_key(depth.clamp_(-1.0, 1.0)) | face
     inside = None
     for e in range(3):
         edge = torch.ge(block_edge(coef, e, px, py), coef[EDGE_MIN][e])  # bool: 1 B a test

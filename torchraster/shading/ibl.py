@@ -26,12 +26,15 @@ All directions are world space, y up; the environment's lat-long layout is that 
 
 from __future__ import annotations
 
+import hashlib
 import math
+from collections import OrderedDict
 from functools import lru_cache
 
 import numpy as np
 import torch
 import torch.nn.functional as F
+from torch.utils.checkpoint import checkpoint
 
 from torchraster._validate import check_radiance, check_tensor
 from torchraster.numerics import diffuse_color, dot, safe_normalize
@@ -57,6 +60,9 @@ from torchraster.texture import (
 )
 
 __all__ = [
+    "ENV_CACHE_BYTES",
+    "QUADRATURE_CHUNK",
+    "content_key",
     "MIN_N_DOT_V",
     "MIN_DFG_ALBEDO",
     "FIS_LOD_BIAS",
@@ -89,6 +95,16 @@ MIN_DFG_ALBEDO: float = 1e-4
 #: on venice_sunset_1k that bias costs accuracy (r = 0.24, 32 samples: 4.8 % mean error
 #: with +1, 1.3 % with 0), so none is added.
 FIS_LOD_BIAS: float = 0.0
+
+#: (output texel, source texel) pairs whose weights are formed at once by the brute-force
+#: quadratures (:func:`irradiance_map`): 2**22 float32 weights = 16 MB per chunk.
+QUADRATURE_CHUNK: int = 2**22
+
+#: Bytes of precomputed environment data (prefiltered specular chains, irradiance maps, SH
+#: coefficients) kept across :class:`Environment` objects, keyed by the radiance's content
+#: (a hash of its bytes, shape, dtype, device) and the knobs: a new Environment of the same
+#: map reuses them. Least recently used entries are dropped first; 0 disables the cache.
+ENV_CACHE_BYTES: int = 256 * 2**20
 
 #: Smallest height of a prefiltered level / quadrature source (lat-long rows): even the
 #: roughness-1 lobe has features (a sun crossing the horizon of the lobe) that 8 rows
@@ -207,9 +223,35 @@ def irradiance_map(
     ds = latlong_directions(hs, ws, device=env.device, dtype=env.dtype).reshape(3, -1)
     dw = latlong_solid_angles(hs, ws, device=env.device, dtype=env.dtype).expand(hs, ws)
     no = latlong_directions(height, 2 * height, device=env.device, dtype=env.dtype)
-    w = (no.reshape(3, -1).T @ ds).clamp_min(0.0) * dw.reshape(1, -1)  # (No, Ns)
-    e = torch.einsum("ns,bcs->bcn", w, env.reshape(b, 3, -1))
-    return e.reshape(b, 3, height, 2 * height)
+    no = no.reshape(3, -1).T  # (No, 3)
+    src = env.reshape(b * 3, -1).T  # (Ns, 3B)
+    # Output directions in chunks of at most QUADRATURE_CHUNK (output, source) pairs: the
+    # weight matrix of a 64-row map from a 512-row source alone would be 17 GB.
+    step = max(1, QUADRATURE_CHUNK // ds.shape[1])
+    dw = dw.reshape(1, -1)
+    grad = env.requires_grad and torch.is_grad_enabled()
+    w = env.new_empty(min(step, no.shape[0]), ds.shape[1]) if not grad else None  # reused
+    e = env.new_empty(no.shape[0], b * 3) if not grad else None
+    parts = []
+    for i in range(0, no.shape[0], step):
+        if grad:  # the weights are recomputed in backward, not kept
+            parts.append(checkpoint(_weighted_sum, no[i:i + step], ds, dw, src,
+                                    use_reentrant=False))
+            continue
+        wi = torch.mm(no[i:i + step], ds, out=w[:min(step, no.shape[0] - i)])
+        wi.clamp_min_(0.0).mul_(dw)  # (n, Ns) cosine x solid angle
+        torch.mm(wi, src, out=e[i:i + step])  # (n, 3B), no allocation per chunk
+    if grad:
+        e = torch.cat(parts)
+    return e.T.reshape(b, 3, height, 2 * height)
+
+
+def _weighted_sum(normals: torch.Tensor, dirs: torch.Tensor, solid_angle: torch.Tensor,
+                  src: torch.Tensor) -> torch.Tensor:
+    """``(n, 3B)`` sums over source texels of radiance x max(0, n.w) x solid angle, for
+    normals ``(n, 3)``, source directions ``(3, Ns)``, solid angles ``(1, Ns)`` and radiance
+    ``(Ns, 3B)``."""
+    return ((normals @ dirs).clamp_min(0.0) * solid_angle) @ src
 
 
 # --------------------------------------------------------------------- specular prefilter
@@ -489,6 +531,55 @@ def lookup_dfg(
     return ab[:, :1], ab[:, 1:]
 
 
+# --------------------------------------------------------------------- content cache
+
+
+class _ContentCache:
+    """Least-recently-used map from (content key, knobs) to lists of tensors, bounded by
+    :data:`ENV_CACHE_BYTES` (read at each insertion)."""
+
+    def __init__(self) -> None:
+        self._entries: OrderedDict[tuple, list[torch.Tensor]] = OrderedDict()
+        self._bytes = 0
+
+    def get(self, key: tuple, build) -> list[torch.Tensor]:  # noqa: ANN001
+        if key in self._entries:
+            self._entries.move_to_end(key)
+            return self._entries[key]
+        value = build()
+        size = sum(t.numel() * t.element_size() for t in value)
+        if size <= ENV_CACHE_BYTES:
+            self._entries[key] = value
+            self._bytes += size
+            while self._bytes > ENV_CACHE_BYTES and self._entries:
+                _, old = self._entries.popitem(last=False)
+                self._bytes -= sum(t.numel() * t.element_size() for t in old)
+        return value
+
+    def clear(self) -> None:
+        self._entries.clear()
+        self._bytes = 0
+
+
+_ENV_CACHE = _ContentCache()
+
+
+def content_key(t: torch.Tensor) -> tuple:
+    """A key that identifies a tensor by value: a 128-bit BLAKE2 digest of its bytes, with
+    its shape, dtype and device (two tensors with equal keys hold the same numbers)."""
+    data = t.detach().contiguous().cpu()
+    digest = hashlib.blake2b(data.view(torch.uint8).numpy().tobytes(), digest_size=16)
+    return digest.hexdigest(), tuple(t.shape), str(t.dtype), str(t.device)
+
+
+def _cached(name: str, radiance: torch.Tensor, knobs: tuple, build) -> list[torch.Tensor]:  # noqa: ANN001
+    """``build()`` through the content cache, unless the result would carry gradients
+    (``radiance`` requires grad) or the cache is disabled."""
+    if ENV_CACHE_BYTES <= 0 or (radiance.requires_grad and torch.is_grad_enabled()):
+        return build()
+    return _ENV_CACHE.get((name, content_key(radiance), knobs), build)
+
+
 # -------------------------------------------------------------------------- environment
 
 
@@ -515,8 +606,11 @@ class Environment:
             venice_sunset_1k in scripts/bench_quality.py (docs/benchmarks.md,
             section quality-ibl).
 
-    The SH coefficients and the specular chain are computed on first use and kept. If
-    ``radiance`` requires grad, build a new Environment per optimisation step.
+    The SH coefficients, the irradiance map and the specular chain are computed on first
+    use and kept; without gradients they are also shared by every Environment of the same
+    radiance (by content, :data:`ENV_CACHE_BYTES`), so re-creating an Environment of the
+    same map does not prefilter it again. If ``radiance`` requires grad, build a new
+    Environment per optimisation step.
     """
 
     def __init__(
@@ -571,28 +665,28 @@ class Environment:
     def sh(self) -> torch.Tensor:
         """``(B, 9, 3)`` SH radiance coefficients (env space, without intensity)."""
         if self._sh is None:
-            self._sh = sh_project(self.radiance)
+            self._sh = _cached("sh", self.radiance, (), lambda: [sh_project(self.radiance)])[0]
         return self._sh
 
     @property
     def specular_chain(self) -> list[torch.Tensor]:
         """Prefiltered specular levels (env space, without intensity)."""
         if self._spec is None:
-            self._spec = prefilter_specular(
-                self.radiance,
-                size=self.specular_size,
-                levels=self.specular_levels,
-                samples=self.specular_samples,
-                source_height=self.specular_source_height,
-            )
+            knobs = (self.specular_size, self.specular_levels, self.specular_samples,
+                     self.specular_source_height)
+            self._spec = _cached("specular", self.radiance, knobs, lambda: prefilter_specular(
+                self.radiance, size=self.specular_size, levels=self.specular_levels,
+                samples=self.specular_samples, source_height=self.specular_source_height))
         return self._spec
 
     @property
     def irradiance_latlong(self) -> torch.Tensor:
         """``(B, 3, h, 2h)`` brute-force irradiance map (env space, without intensity)."""
         if self._irr is None:
-            self._irr = irradiance_map(self.radiance, height=self.irradiance_height,
-                                       source_height=self.irradiance_source_height)
+            knobs = (self.irradiance_height, self.irradiance_source_height)
+            self._irr = _cached("irradiance", self.radiance, knobs, lambda: [irradiance_map(
+                self.radiance, height=self.irradiance_height,
+                source_height=self.irradiance_source_height)])[0]
         return self._irr
 
     def to_env(self, d: torch.Tensor) -> torch.Tensor:
@@ -665,7 +759,9 @@ def shade_ibl(
         env: the :class:`Environment`.
         multiscatter: Fdez-Aguera / Filament energy compensation of the specular lobe.
         f0_dielectric: reflectance at normal incidence for metallic = 0. f90 follows
-            Filament, ``saturate(50 * 0.33 * f0)``, so f0 = 0 turns specular off.
+            Filament, ``saturate(50 * 0.33 * f0)``, so f0 = 0 turns specular off: when f0 is
+            0 at every pixel (and needs no gradient) the specular term is skipped and the
+            prefiltered chain is never built.
         lut_size, lut_samples: knobs of :func:`dfg_lut`; defaults (16, 32): the fastest
             within 1 % mean error in scripts/bench_quality.py.
 
@@ -698,9 +794,11 @@ def shade_ibl(
     lut = dfg_lut(lut_size, lut_samples, device=normal.device, dtype=normal.dtype)
     a, bias = lookup_dfg(lut, n_dot_v, rough)
     e_ss = f0 * a + f90 * bias
+    diffuse = diffuse_color(albedo, metal) * env.irradiance(n) * (1.0 / math.pi) * (1.0 - e_ss)
+    if not f0.requires_grad and not bool((f0 != 0).any()):
+        return diffuse * ao if ao is not None else diffuse  # f0 = f90 = 0: no specular at all
     spec = env.specular(r, rough) * e_ss
     if multiscatter:
         spec = spec * (1.0 + f0 * (1.0 / (a + bias).clamp_min(MIN_DFG_ALBEDO) - 1.0))
-    diffuse = diffuse_color(albedo, metal) * env.irradiance(n) * (1.0 / math.pi) * (1.0 - e_ss)
     out = diffuse + spec
     return out * ao if ao is not None else out

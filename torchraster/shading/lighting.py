@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import torch
@@ -33,23 +34,40 @@ from torchraster.numerics import (
     safe_normalize,
     specular_f0,
 )
-from torchraster.shading.brdf import MIN_COS, MIN_ROUGHNESS
+from torchraster.shading.brdf import DIELECTRIC_F0, MIN_COS, MIN_ROUGHNESS, NORMALIZE_EPS
 from torchraster.shading.ibl import dfg_lut, lookup_dfg
 from torchraster.shading.lights import (
+    MIN_LIGHT_DISTANCE,
     DirectionalLights,
     Lights,
     PointLights,
     SpotLights,
     directional_incidence,
+    distance_attenuation,
     point_incidence,
     sh_irradiance,
+    spot_attenuation,
     spot_incidence,
 )
 from torchraster.shading.models import ShadingModel, Surface, get_model
+from torchraster.shading.models import cook_torrance as _cook_torrance_model
 
 #: Pixel-lights (B * L_chunk * H * W) evaluated at once. 2**22 keeps one float32 RGB
 #: temporary at 48 MB; at 512x512, batch 4 that is 4 lights per chunk.
 LIGHT_CHUNK_ELEMENTS: int = 2**22
+
+#: Pixel-lights evaluated at once by the fused Cook-Torrance pass (:func:`cook_torrance_lights`):
+#: its ~30 temporaries of this many elements then stay in the CPU's cache.
+PIXEL_LIGHT_CHUNK: int = 2**16
+
+#: With autograd on, the fused pass takes this many times larger chunks (fewer, larger
+#: autograd graphs; memory stays bounded by the chunk when chunks are checkpointed).
+GRAD_CHUNK_FACTOR: int = 8
+
+#: The fused pass evaluates the BRDF only at the pixel-lights a light reaches (n.l > 0,
+#: inside its range and cone, visible) when fewer than this fraction of them are reached;
+#: above it, evaluating all of them is cheaper than gathering the reached ones.
+SPARSE_FRACTION: float = 0.4
 
 #: Size and sample count of the split-sum DFG table (built by ``ibl.dfg_lut``, the same
 #: function as image-based lighting) for the ambient light's specular term. Finer than
@@ -122,6 +140,206 @@ def _direct(
     if visibility is not None:
         e = e * visibility
     return (out * e).sum(dim=1)
+
+
+def cook_torrance_lights(
+    kind: type,
+    lights: DirectionalLights | PointLights | SpotLights,
+    item: int,
+    position: torch.Tensor,
+    normal: torch.Tensor,
+    view: torch.Tensor,
+    albedo: torch.Tensor,
+    metallic: torch.Tensor,
+    roughness: torch.Tensor,
+    visibility: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Sum over the L lights of batch item ``item`` of the Cook-Torrance BRDF times the
+    cosine and the illuminance, at M packed pixels of that item: the fused form of ``_direct`` with
+    :func:`~torchraster.shading.models.cook_torrance` (same formulas and floors as
+    :func:`~torchraster.shading.brdf.cook_torrance` and the light functions of
+    :mod:`~torchraster.shading.lights`).
+
+    Lights stay a tensor dimension and colour is applied last: with ``w = E max(n.l, 0)``
+    (E the scalar attenuation x visibility), ``s1 = D V w`` and ``s2 = s1 (1 - v.h)^5``,
+    ``radiance = kd (C^T w) + f0 (C^T s1) + (1 - f0) (C^T s2)`` where C (L, 3) is colour x
+    intensity, three small matmuls instead of per-light RGB tensors. Terms that do not
+    depend on the light (f0, kd, the view half of the Smith term) are computed once per
+    pixel. Pixel-lights the light cannot reach (n.l <= 0, outside the range or cone,
+    visibility 0) contribute exactly 0 (also to gradients); when fewer than
+    :data:`SPARSE_FRACTION` are reached, the BRDF is evaluated at those only.
+
+    Args:
+        kind: ``DirectionalLights``, ``PointLights`` or ``SpotLights``.
+        lights: that kind's lights, ``(B, L, ...)``.
+        item: the batch item whose lights shade these pixels.
+        position, normal, view: ``(3, M)`` world position, unit normal, unit direction to
+            the eye.
+        albedo: ``(3, M)``; metallic, roughness: ``(1, M)``.
+        visibility: ``(L, M)`` fraction of each light reaching each pixel, or None.
+
+    Returns:
+        ``(3, M)`` outgoing radiance.
+    """
+    n_v = (normal * view).sum(0, keepdim=True)  # (1, M)
+    nv = n_v.clamp(MIN_COS, 1.0)
+    r = roughness.clamp(MIN_ROUGHNESS, 1.0)
+    a = r * r
+    a2 = a * a
+    lam_v = torch.sqrt(torch.addcmul(a2, nv * nv, 1.0 - a2))
+    f0 = DIELECTRIC_F0 * (1.0 - metallic) + albedo * metallic
+    kd = (1.0 - metallic) * albedo
+    color = lights.color[item] * lights.intensity[item][:, None]  # (L, 3)
+    if kind is DirectionalLights:
+        l = -safe_normalize(lights.direction[item], dim=-1)  # (L, 3)
+        n_l = l @ normal  # (L, M)
+        v_l = l @ view
+        e = None
+    else:
+        lp = lights.position[item]  # (L, 3)
+        to_light = lp[:, :, None] - position  # (L, 3, M)
+        d2 = (to_light * to_light).sum(1)  # (L, M)
+        ok = d2 > NORMALIZE_EPS  # a light at the surface point: l = 0 (finite gradients)
+        inv_d = torch.rsqrt(d2.clamp_min(NORMALIZE_EPS)) * ok
+        # n.(p_light - p) = n.p_light - n.p: one small matmul instead of a (L, 3, M) pass
+        n_l = (lp @ normal - (normal * position).sum(0)) * inv_d
+        v_l = (lp @ view - (view * position).sum(0)) * inv_d
+        rng = lights.range[item][:, None]
+        if bool(torch.isinf(rng).all()):
+            e = 1.0 / d2.clamp_min(MIN_LIGHT_DISTANCE**2)  # no range window
+        else:
+            e = distance_attenuation(d2, rng)
+        if kind is SpotLights:
+            axis = safe_normalize(lights.direction[item], dim=-1)  # (L, 3)
+            cos_angle = ((axis * lp).sum(1, keepdim=True) - axis @ position) * inv_d
+            e = e * spot_attenuation(-cos_angle, lights.inner_cone_angle[item][:, None],
+                                     lights.outer_cone_angle[item][:, None])
+    if visibility is not None:
+        e = visibility if e is None else e * visibility
+    w = n_l.clamp(0.0, 1.0)
+    if e is not None:
+        w = w * e
+    reached = w > 0
+    count = int(reached.sum())
+    if count == 0:  # no light reaches: 0, still connected to the inputs (zero gradients)
+        return albedo * 0.0 + w.sum() * 0.0 if torch.is_grad_enabled() else torch.zeros_like(
+            albedo)
+    v_l = v_l.expand_as(w)
+    n_l = n_l.expand_as(w)
+    if count < SPARSE_FRACTION * w.numel():  # evaluate the BRDF where it matters only
+        idx = reached.reshape(-1).nonzero().squeeze(1)
+        pix = idx % w.shape[1]
+        per_pixel = [t[0].index_select(0, pix) for t in (n_v, nv, a, a2, lam_v)]
+        s1, s2 = _ct_lobe(*(t.reshape(-1).index_select(0, idx) for t in (n_l, v_l, w)),
+                          *per_pixel)
+        s1 = w.new_zeros(w.numel()).index_put((idx,), s1).view(w.shape)
+        s2 = w.new_zeros(w.numel()).index_put((idx,), s2).view(w.shape)
+    else:
+        s1, s2 = _ct_lobe(n_l, v_l, w, n_v, nv, a, a2, lam_v)
+    c_t = color.T  # (3, L)
+    # D and V carry 1 / pi and 1 / 2 (folded in here), and kd its 1 / pi
+    spec = f0 * (c_t @ s1) + (1.0 - f0) * (c_t @ s2)
+    return (kd * (c_t @ w) + 0.5 * spec) * (1.0 / math.pi)
+
+
+def _ct_lobe(n_l, v_l, w, n_v, nv, a, a2, lam_v):
+    """Specular lobe weights of :func:`cook_torrance_lights` (any broadcastable shapes):
+    ``s1 = pi D 2 V w`` and ``s2 = s1 (1 - v.h)^5`` (the constants pi and 2 are applied by the
+    caller), as in :func:`~torchraster.shading.brdf.cook_torrance`: half-vector cosines
+    without forming h (|v + l|^2 = 2 + 2 v.l, 0 for v = -l), GGX D (0 for n.h <= 0),
+    height-correlated Smith V with the cosines floored at MIN_COS, Schlick's (1 - v.h)^5.
+    ``n_v``: n.v; ``nv``: n.v floored; ``a``, ``a2``: GGX alpha and its square;
+    ``lam_v``: sqrt((n.v)^2 (1 - a2) + a2)."""
+    len2 = 2.0 + 2.0 * v_l
+    inv_len = torch.rsqrt(len2.clamp_min(NORMALIZE_EPS)) * (len2 > NORMALIZE_EPS)
+    n_h = (n_l + n_v) * inv_len
+    v_h = (1.0 + v_l) * inv_len
+    c2 = n_h.clamp(0.0, 1.0).square()
+    k = a / torch.addcmul(torch.ones_like(c2), c2, a2 - 1.0)  # 1 - c^2 + (c a)^2
+    d = k * k * (n_h > 0)
+    nl = n_l.clamp(MIN_COS, 1.0)
+    g = torch.addcmul(nl * lam_v, nv, torch.sqrt(torch.addcmul(a2, nl * nl, 1.0 - a2)))
+    s1 = d * w / g
+    m = 1.0 - v_h.clamp(0.0, 1.0)
+    m2 = m * m
+    return s1, s1 * (m2 * m2 * m)
+
+
+def _pack_items(covered, dt, position, normal, albedo, metallic, roughness, camera_position):
+    """Per batch item: (covered pixel indices (M,) or None for all, then packed position,
+    unit normal, unit view direction, albedo ``(3, M)``, metallic, roughness ``(1, M)`` in
+    ``dt``). Only covered pixels are read, so garbage in empty G-buffer pixels cannot reach
+    values or gradients."""
+    b, _, h, w = position.shape
+    items = []
+    for item in range(b):
+        flat = [t[item].reshape(t.shape[1], h * w)
+                for t in (position, normal, albedo, metallic, roughness)]
+        sel = None
+        if covered is not None:
+            sel = covered[item].reshape(-1).nonzero().squeeze(1)
+            flat = [t.index_select(1, sel) for t in flat]
+        pos, nrm, base, metal, rough = (t.to(dt) for t in flat)
+        n = safe_normalize(nrm, dim=0)
+        v = safe_normalize(camera_position[item].to(dt)[:, None] - pos, dim=0)
+        items.append((sel, pos, n, v, base, metal, rough))
+    return items
+
+
+def _fused_direct(kind, lights, packed, vis, use_ckpt, acc):
+    """Add one chunk of lights of ``kind`` to the packed radiance ``acc`` (a list of
+    ``(3, M)`` per batch item, None until lit) through :func:`cook_torrance_lights`, in
+    chunks of about :data:`PIXEL_LIGHT_CHUNK` pixel-lights, each recomputed in backward
+    when ``use_ckpt``. ``vis``: ``(B, L, 1, H, W)`` visibility or None."""
+    per = PIXEL_LIGHT_CHUNK * (GRAD_CHUNK_FACTOR if torch.is_grad_enabled() else 1)
+    per = max(1024, per // max(1, lights.count))
+    for item, (sel, *attrs) in enumerate(packed):
+        m = attrs[0].shape[1]
+        if m == 0:
+            continue
+        vis_i = None
+        if vis is not None:
+            vis_i = vis[item].reshape(vis.shape[1], -1)
+            vis_i = vis_i if sel is None else vis_i.index_select(1, sel)
+        inplace = not torch.is_grad_enabled()  # no graph: add each chunk in place
+        if inplace and acc[item] is None:
+            acc[item] = attrs[0].new_zeros(3, m)
+        parts = []
+        for s0 in range(0, m, per):
+            args = [t[:, s0:s0 + per] for t in attrs]
+            args.append(None if vis_i is None else vis_i[:, s0:s0 + per])
+            if use_ckpt:
+                rad = checkpoint(cook_torrance_lights, kind, lights, item, *args,
+                                 use_reentrant=False)
+            else:
+                rad = cook_torrance_lights(kind, lights, item, *args)
+            if inplace:
+                acc[item][:, s0:s0 + per] += rad
+            else:
+                parts.append(rad)
+        if not inplace:
+            rad = torch.cat(parts, 1) if len(parts) > 1 else parts[0]
+            acc[item] = rad if acc[item] is None else acc[item] + rad
+
+
+def _unpack_items(acc, packed, shape, like):
+    """``(B, 3, H, W)`` image of packed per-item radiance (0 at uncovered pixels)."""
+    b, _, h, w = shape
+    if not torch.is_grad_enabled():
+        out = like.new_zeros(b, 3, h * w)
+        for item, (rad, (sel, *_)) in enumerate(zip(acc, packed, strict=True)):
+            if rad is not None:
+                out[item] = rad if sel is None else out[item].index_copy_(1, sel, rad)
+        return out.view(b, 3, h, w)
+    images = []
+    for rad, (sel, *attrs) in zip(acc, packed, strict=True):
+        if rad is None:  # unlit: 0, still connected to the inputs (zero gradients)
+            images.append(like.new_zeros(3, h * w) + sum(t.sum() for t in attrs) * 0.0)
+        elif sel is None:
+            images.append(rad)
+        else:
+            images.append(rad.new_zeros(3, h * w).index_copy(1, sel, rad))
+    return torch.stack(images).view(b, 3, h, w)
 
 
 def shade(
@@ -211,30 +429,42 @@ def shade(
         t = t.to(dtype=dt)
         return t if covered is None else torch.where(covered, t, 0.0)
 
-    pos, nrm, base, metal, rough = (prep(t) for t in (position, normal, albedo, metallic,
-                                                       roughness))
-    n = safe_normalize(nrm)
-    v = safe_normalize(camera_position.to(dt)[:, :, None, None] - pos)
     lights = lights.to(device=dev, dtype=dt)
-
+    kinds = [(kind, part) for kind, part in ((DirectionalLights, lights.directional),
+                                             (PointLights, lights.point),
+                                             (SpotLights, lights.spot))
+             if part is not None and part.count > 0]
+    # The fused Cook-Torrance pass works on the covered pixels only, packed once per frame;
+    # the full-frame tensors are built only for other models, ambient light and IBL.
+    fused = shading_model is _cook_torrance_model
+    full_frame = (kinds and not fused) or lights.ambient is not None or ibl is not None
+    if full_frame:
+        pos, nrm, base, metal, rough = (prep(t) for t in (position, normal, albedo, metallic,
+                                                           roughness))
+        n = safe_normalize(nrm)
+        v = safe_normalize(camera_position.to(dt)[:, :, None, None] - pos)
     radiance = torch.zeros(b, 3, h, w, device=dev, dtype=dt)
 
     # Direct light: lights as a tensor dimension, in chunks.
-    n5, v5 = n[:, None], v[:, None]
-    surface = Surface(albedo=base[:, None], metallic=metal[:, None], roughness=rough[:, None])
+    packed = acc = None
+    if fused and kinds:
+        packed = _pack_items(covered, dt, position, normal, albedo, metallic, roughness,
+                             camera_position)
+        acc = [None] * b
     per_chunk = light_chunk or max(1, LIGHT_CHUNK_ELEMENTS // max(1, b * h * w))
-    for kind, part in (
-        (DirectionalLights, lights.directional),
-        (PointLights, lights.point),
-        (SpotLights, lights.spot),
-    ):
+    if fused and light_chunk is None and visibility is None:
+        per_chunk = max(part.count for _, part in kinds) if kinds else 1  # memory: per pixel chunk
+    n_covered = b * h * w if covered is None else int(covered.sum())
+    for kind, part in kinds:
         name = {DirectionalLights: "directional", PointLights: "point", SpotLights: "spot"}[kind]
-        if part is None or part.count == 0:
-            continue
         slices = _chunks(part.count, per_chunk)
         use_ckpt = checkpoint_chunks
         if use_ckpt is None:
-            use_ckpt = torch.is_grad_enabled() and len(slices) > 1
+            if fused:  # recompute pixel chunks in backward when the whole graph is large
+                use_ckpt = torch.is_grad_enabled() and (
+                    min(per_chunk, part.count) * n_covered > LIGHT_CHUNK_ELEMENTS)
+            else:
+                use_ckpt = torch.is_grad_enabled() and len(slices) > 1
         for sl in slices:
             chunk = part if len(slices) == 1 else part.select(sl)
             vis = visibility(name, sl) if visibility is not None else None
@@ -242,11 +472,18 @@ def shade(
                 check_tensor(f"visibility({name!r}) result", vis,
                              (b, chunk.count, 1, h, w), floating=True)
                 vis = vis.to(dt)
-            args = (shading_model, kind, chunk, pos, n5, v5, surface, vis)
+            if fused:
+                _fused_direct(kind, chunk, packed, vis, use_ckpt, acc)
+                continue
+            surface = Surface(albedo=base[:, None], metallic=metal[:, None],
+                              roughness=rough[:, None])
+            args = (shading_model, kind, chunk, pos, n[:, None], v[:, None], surface, vis)
             if use_ckpt:
                 radiance = radiance + checkpoint(_direct, *args, use_reentrant=False)
             else:
                 radiance = radiance + _direct(*args)
+    if acc is not None:
+        radiance = _unpack_items(acc, packed, (b, 3, h, w), radiance)
 
     # Ambient (SH) and image-based light, scaled by AO.
     indirect = None

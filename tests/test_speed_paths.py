@@ -1,0 +1,254 @@
+"""The fast paths of issue 10 agree with the plain ones they replace.
+
+* occlusion culling of hidden back faces (rasterize.OCCLUSION_CULLING) leaves every key,
+  face id, barycentric and depth bit for bit unchanged;
+* the per-pixel pass (a custom autograd Function with a closed-form backward) and the fused
+  interpolation have exact gradients, with and without screen-space derivatives;
+* the fused Cook-Torrance lighting pass equals the generic model path (values and
+  gradients), dense and sparse, with checkpointing, visibility and views from below;
+* image-based lighting: the chunked irradiance map equals one big product, f0 = 0 skips the
+  specular chain, and environments are shared by content.
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+
+import pytest
+import torch
+import trimesh
+
+import torchraster as tr
+from torchraster.config import lights_from_config
+from torchraster.gbuffer import GBuffer
+from torchraster.raster.interpolate import interpolate_packed
+from torchraster.shading import ibl, lighting
+from torchraster.shading.models import cook_torrance
+from torchraster.testing.reference_raster import random_soup
+
+rasterize_module = importlib.import_module("torchraster.raster.rasterize")
+F64 = torch.float64
+
+
+def _sphere_clip(b: int = 2, subdiv: int = 3, dtype: torch.dtype = torch.float32):
+    mesh = trimesh.creation.icosphere(subdivisions=subdiv)
+    verts = torch.tensor(mesh.vertices, dtype=dtype)
+    faces = torch.tensor(mesh.faces, dtype=torch.int64)
+    view = tr.camera.orbit(torch.linspace(0.0, 300.0, b), torch.linspace(-40.0, 50.0, b),
+                           torch.full((b,), 2.6))
+    proj = tr.camera.perspective(45.0, 1.0, 0.1)
+    return tr.camera.transform_points(verts, (proj @ view).to(dtype)), faces, verts
+
+
+def _keys(clip, faces, res, **kw):
+    return rasterize_module.resolve_keys(clip, faces, res, kw.get("cull", False), None,
+                                         kw.get("tile", 16), 2**20, 320)
+
+
+@pytest.mark.parametrize("case", ["sphere", "soup", "soup_tile4", "big_triangles"])
+def test_occlusion_culling_changes_nothing(case: str, monkeypatch) -> None:
+    gen = torch.Generator().manual_seed(5)
+    tile = 4 if case == "soup_tile4" else 16
+    if case == "sphere":
+        clip, faces, _ = _sphere_clip()
+        res = (40, 56)
+    elif case == "big_triangles":  # a few huge faces in front of and behind others
+        clip, faces, _ = random_soup(gen, 2, 12, weights=(1, 0, 0, 0, 0, 0))
+        clip = clip.float() * torch.tensor([4.0, 4.0, 1.0, 1.0])
+        res = (48, 48)
+    else:
+        clip, faces, _ = random_soup(gen, 2, 300)
+        clip = clip.float()
+        res = (37, 45)
+    monkeypatch.setattr(rasterize_module, "OCCLUSION_CULLING", True)
+    with_cull = _keys(clip, faces, res, tile=tile)
+    frags = tr.rasterize(clip, faces, res, tile=tile)
+    depth = tr.raster.rasterize_depth(clip, faces, res, tile=tile)
+    monkeypatch.setattr(rasterize_module, "OCCLUSION_CULLING", False)
+    plain = _keys(clip, faces, res, tile=tile)
+    ref = tr.rasterize(clip, faces, res, tile=tile)
+    assert torch.equal(with_cull, plain)
+    assert torch.equal(frags.face_id, ref.face_id)
+    assert torch.equal(frags.bary, ref.bary) and torch.equal(frags.depth, ref.depth)
+    assert torch.equal(depth, tr.raster.rasterize_depth(clip, faces, res, tile=tile))
+    assert (frags.face_id >= 0).any()
+
+
+def test_occlusion_culling_skips_hidden_back_faces(monkeypatch) -> None:
+    """On a closed sphere most back faces are proven hidden and never binned."""
+    clip, faces, _ = _sphere_clip(b=1, subdiv=4)
+    seen = {}
+    orig = rasterize_module._visible_subset
+
+    def spy(screen, idx, keys, shape, tile):
+        out = orig(screen, idx, keys, shape, tile)
+        seen["in"] = seen.get("in", 0) + idx.numel()
+        seen["out"] = seen.get("out", 0) + out.numel()
+        return out
+
+    monkeypatch.setattr(rasterize_module, "_visible_subset", spy)
+    tr.rasterize(clip, faces, (256, 256))
+    assert seen["in"] > 1000 and seen["out"] < 0.5 * seen["in"]
+
+
+def test_pixel_pass_and_fused_interpolation_gradients() -> None:
+    clip = torch.tensor([[[-0.8, -0.7, 0.1, 1.0], [0.9, -0.5, 0.3, 1.4], [0.1, 0.8, -0.2, 0.9],
+                          [-0.9, 0.6, 0.5, 1.1], [0.7, 0.9, 0.2, 2.0]]], dtype=F64)
+    clip = torch.cat([clip, clip * torch.tensor([1.1, 0.9, 1.0, 1.05], dtype=F64)])
+    faces = torch.tensor([[0, 1, 2], [2, 4, 3], [0, 2, 3]])
+    attrs = torch.randn(2, 5, 2, dtype=F64)
+    res = (7, 6)
+
+    def with_derivatives(c, a):
+        frags = tr.rasterize(c, faces, res, derivatives=True)
+        value, ddx, ddy = tr.interpolate_with_derivatives(a, frags, faces)
+        return value, ddx, ddy, frags.depth.nan_to_num(posinf=0.0), frags.bary_dx
+
+    def shared_attrs(c, a):
+        return tr.interpolate(a, tr.rasterize(c, faces, res), faces)
+
+    def packed(c, a):
+        return interpolate_packed(a, tr.rasterize(c, faces, res, derivatives=True), True)
+
+    c = clip.clone().requires_grad_()
+    assert torch.autograd.gradcheck(with_derivatives, (c, attrs.clone().requires_grad_()))
+    assert torch.autograd.gradcheck(shared_attrs, (c, attrs[0].clone().requires_grad_()))
+    assert torch.autograd.gradcheck(packed, (c, attrs.clone().requires_grad_()))
+
+
+def test_fused_interpolation_matches_per_pixel_corners() -> None:
+    """The per-face-row path equals gathering every pixel's corners (Fragments by hand)."""
+    clip, faces, verts = _sphere_clip(b=3, subdiv=2, dtype=F64)
+    frags = tr.rasterize(clip, faces, (24, 20), derivatives=True)
+    attrs = torch.randn(3, verts.shape[0], 4, dtype=F64)
+    manual = tr.raster.Fragments(frags.face_id, frags.pixels, frags.items, frags.corners,
+                                 frags.bary_packed, frags.depth_packed, frags.bary_dx_packed,
+                                 frags.bary_dy_packed)
+    for a in (attrs, attrs[0]):
+        fast = tr.interpolate_with_derivatives(a, frags, faces)
+        slow = tr.interpolate_with_derivatives(a, manual, faces)
+        for x, y in zip(fast, slow, strict=True):
+            torch.testing.assert_close(x, y, rtol=1e-12, atol=1e-14)
+    assert torch.equal(frags.items, frags.pixels // (24 * 20))
+    assert torch.equal(frags.corners, faces[frags.face_id.view(-1)[frags.pixels]].T)
+
+
+def _gbuffer(h: int = 10, w: int = 12, b: int = 2, seed: int = 3):
+    g = torch.Generator().manual_seed(seed)
+    pos = torch.randn(b, 3, h, w, generator=g, dtype=F64) * 0.5
+    nrm = torch.randn(b, 3, h, w, generator=g, dtype=F64)  # some face away from the eye
+    albedo = torch.rand(b, 3, h, w, generator=g, dtype=F64)
+    metal = torch.rand(b, 1, h, w, generator=g, dtype=F64)
+    rough = torch.rand(b, 1, h, w, generator=g, dtype=F64)
+    mask = torch.rand(b, 1, h, w, generator=g) > 0.2
+    return pos, nrm, albedo, metal, rough, mask
+
+
+LIGHTS = [
+    {"type": "point", "position": [1.0, 1.5, 2.0], "intensity": 5.0, "range": 3.0},
+    {"type": "point", "position": [-1.0, 0.2, 1.0], "intensity": 3.0, "color": [1, 0.5, 0.2]},
+    {"type": "spot", "position": [0, 0, 2], "direction": [0.1, 0, -1], "intensity": 9.0,
+     "inner_cone_angle": 0.2, "outer_cone_angle": 0.6, "range": 4.0},
+    {"type": "directional", "direction": [-1, -0.5, -1], "intensity": 2.0},
+    {"type": "directional", "direction": [1, 0.2, -0.3], "intensity": 1.0},
+]
+
+
+@pytest.mark.parametrize("sparse", [0.0, 1.0])
+@pytest.mark.parametrize("ckpt", [None, True])
+def test_fused_lighting_matches_generic_model(sparse: float, ckpt, monkeypatch) -> None:
+    monkeypatch.setattr(lighting, "SPARSE_FRACTION", sparse)
+    pos, nrm, albedo, metal, rough, mask = _gbuffer()
+    lights = lights_from_config(LIGHTS, batch=2, dtype=F64)
+    eye = torch.tensor([[0.0, 0.0, 3.0], [0.5, 1.0, 2.5]], dtype=F64)
+
+    def vis(kind, sl):
+        return torch.linspace(0.0, 1.0, 2 * 10 * 12, dtype=F64).view(2, 1, 1, 10, 12).expand(
+            2, sl.stop - sl.start, 1, 10, 12)
+
+    def run(model, rough_in, light_chunk=None):
+        gb = GBuffer(position=pos, normal=nrm, albedo=albedo, metallic=metal,
+                     roughness=rough_in, mask=mask)
+        return lighting.shade(gb, camera_position=eye, lights=lights, model=model,
+                              visibility=vis, light_chunk=light_chunk, checkpoint_chunks=ckpt)
+
+    def generic(n, v, l, surface):  # same BRDF, through the per-light generic path
+        return cook_torrance(n, v, l, surface)
+
+    outs, grads = [], []
+    for model, chunk in ((generic, None), ("cook_torrance", None), ("cook_torrance", 1)):
+        r = rough.clone().requires_grad_()
+        out = run(model, r, chunk)
+        out.square().sum().backward()
+        outs.append(out.detach())
+        grads.append(r.grad)
+    for o, g in zip(outs[1:], grads[1:], strict=True):
+        torch.testing.assert_close(o, outs[0], rtol=1e-10, atol=1e-12)
+        torch.testing.assert_close(g, grads[0], rtol=1e-8, atol=1e-10)
+    assert (outs[0] > 0).any()
+
+
+def test_fused_lighting_gradcheck_lights_and_geometry() -> None:
+    pos, nrm, albedo, metal, rough, mask = _gbuffer(3, 4, 1)
+    eye = torch.tensor([[0.0, 0.0, 3.0]], dtype=F64)
+    base = lights_from_config(LIGHTS, dtype=F64)
+
+    def fn(position, intensity, normal, direction):
+        point = base.point
+        lights = tr.Lights(
+            point=tr.PointLights(position, point.color, intensity, point.range),
+            spot=base.spot,
+            directional=tr.DirectionalLights(direction, base.directional.color,
+                                             base.directional.intensity))
+        gb = GBuffer(position=pos, normal=normal, albedo=albedo, metallic=metal,
+                     roughness=rough, mask=mask)
+        return lighting.shade(gb, camera_position=eye, lights=lights)
+
+    args = (base.point.position.clone(), base.point.intensity.clone(), nrm.clone(),
+            base.directional.direction.clone())
+    assert torch.autograd.gradcheck(fn, tuple(a.requires_grad_() for a in args))
+
+
+def test_irradiance_map_chunks_match_one_product(monkeypatch) -> None:
+    env = torch.rand(2, 3, 16, 32, dtype=F64)
+    whole = ibl.irradiance_map(env, height=8, source_height=None)
+    monkeypatch.setattr(ibl, "QUADRATURE_CHUNK", 700)  # many uneven chunks
+    torch.testing.assert_close(ibl.irradiance_map(env, height=8, source_height=None), whole,
+                               rtol=1e-12, atol=1e-12)
+    const = ibl.irradiance_map(torch.ones(1, 3, 32, 64, dtype=F64), height=8,
+                               source_height=None)
+    torch.testing.assert_close(const, torch.full_like(const, math.pi), rtol=2e-3, atol=0)
+    grad_env = torch.rand(1, 3, 4, 8, dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(
+        lambda e: ibl.irradiance_map(e, height=2, source_height=None), (grad_env,))
+
+
+def test_zero_f0_skips_the_specular_chain() -> None:
+    env = ibl.Environment(torch.rand(3, 16, 32, dtype=F64) + 0.1)
+    n = torch.randn(1, 3, 4, 5, dtype=F64)
+    v = torch.randn(1, 3, 4, 5, dtype=F64)
+    albedo = torch.rand(1, 3, 4, 5, dtype=F64)
+    zero = torch.zeros(1, 1, 4, 5, dtype=F64)
+    rough = torch.rand(1, 1, 4, 5, dtype=F64)
+    out = ibl.shade_ibl(n, v, albedo, zero, rough, None, env, f0_dielectric=0.0)
+    assert env._spec is None  # never prefiltered
+    spec_on = ibl.shade_ibl(n, v, albedo, zero, rough, None, env, f0_dielectric=1e-30)
+    torch.testing.assert_close(out, spec_on, rtol=1e-12, atol=1e-12)
+    assert env._spec is not None
+
+
+def test_environments_are_shared_by_content(monkeypatch) -> None:
+    monkeypatch.setattr(ibl, "_ENV_CACHE", ibl._ContentCache())
+    radiance = torch.rand(3, 16, 32)
+    a, b = ibl.Environment(radiance), ibl.Environment(radiance.clone())
+    assert a.specular_chain is b.specular_chain
+    assert a.irradiance_latlong is b.irradiance_latlong
+    other = ibl.Environment(radiance + 1e-3)
+    assert other.specular_chain is not a.specular_chain
+    knobs = ibl.Environment(radiance, specular_levels=4)
+    assert len(knobs.specular_chain) == 4
+    grad = ibl.Environment(radiance.clone().requires_grad_())
+    assert grad.specular_chain is not a.specular_chain and grad.specular_chain[1].requires_grad
+    monkeypatch.setattr(ibl, "ENV_CACHE_BYTES", 0)
+    assert ibl.Environment(radiance).specular_chain is not a.specular_chain
