@@ -72,18 +72,19 @@ class Fragments:
     ``rows`` (N,) the row of each covered pixel, ``row_face`` (M,) face index and
     ``row_item`` (M,) batch item of each row, ``faces`` (F, 3) the faces rasterized.
     ``corners`` and ``front_facing`` (N,) bool (counter-clockwise in NDC) are gathered from
-    them on first access.
+    them, and ``depth_packed`` evaluated, on first access.
     """
 
     def __init__(self, face_id, pixels, items, corners, bary_packed, depth_packed,
                  bary_dx_packed=None, bary_dy_packed=None, *, faces=None, rows=None,
-                 row_face=None, row_item=None, row_front=None):
+                 row_face=None, row_item=None, row_front=None, depth_fn=None):
         self.face_id = face_id
         self.pixels = pixels
         self._items = items
         self._corners = corners
         self.bary_packed = bary_packed
-        self.depth_packed = depth_packed
+        self._depth_packed = depth_packed
+        self._depth_fn = depth_fn
         self.bary_dx_packed = bary_dx_packed
         self.bary_dy_packed = bary_dy_packed
         self.faces = faces
@@ -102,6 +103,19 @@ class Fragments:
             face = self.row_face.index_select(0, self.rows)
             self._corners = self.faces.index_select(0, face).T.contiguous()
         return self._corners
+
+    @property
+    def depth_packed(self) -> torch.Tensor:
+        """(N,) NDC depth of the covered pixels (computed on first use by ``rasterize``'s
+        fragments, differentiable as if computed there)."""
+        if self._depth_packed is None and self._depth_fn is not None:
+            self._depth_packed = self._depth_fn()
+            self._depth_fn = None
+        return self._depth_packed
+
+    @depth_packed.setter
+    def depth_packed(self, value: torch.Tensor) -> None:
+        self._depth_packed = value
 
     @property
     def items(self) -> torch.Tensor:
@@ -625,12 +639,19 @@ def _fragments_from_keys(clip_pos, faces, keys, shape, derivatives) -> Fragments
     verts = clip_t.index_select(1, vert_ids.reshape(-1)).view(4, 3, -1)  # (4, 3, M)
     ref_cr = torch.stack(_pixel_coords(ref, h, w))  # (2, M) column, row
     table, front = face_tables(verts, ref_cr, (h, w))  # (FACE_TABLE_ROWS, M)
-    outs = _PixelPass.apply(table, ref_cr.to(table.dtype), rows, pixels, (h, w), derivatives)
-    frags = Fragments(face_id.view(b, h, w), pixels, None, None, outs[0].T, outs[1],
+    ref_f = ref_cr.to(table.dtype)
+    outs = _PixelPass.apply(table, ref_f, rows, pixels, (h, w), derivatives, False)
+    grad_mode = torch.is_grad_enabled()
+
+    def depth() -> torch.Tensor:  # evaluated on first use, in the grad mode of rasterize
+        with torch.set_grad_enabled(grad_mode):
+            return _PixelPass.apply(table, ref_f, rows, pixels, (h, w), False, True)[0]
+
+    frags = Fragments(face_id.view(b, h, w), pixels, None, None, outs[0].T, None,
                       faces=faces, rows=rows, row_face=row_face, row_item=row_item,
-                      row_front=front)
+                      row_front=front, depth_fn=depth)
     if derivatives:
-        frags.bary_dx_packed, frags.bary_dy_packed = outs[2].T, outs[3].T
+        frags.bary_dx_packed, frags.bary_dy_packed = outs[1].T, outs[2].T
     return frags
 
 
@@ -649,100 +670,116 @@ class _PixelPass(torch.autograd.Function):
 
     Forward (no autograd bookkeeping, in chunks of :data:`PIXEL_CHUNK` pixels): with
     du = column - reference column, dv = row - reference row of the pixel's face row,
-    ``l = L + A du + B dv``, ``S = sum(l)`` (1 where 0), ``bary = l / S``,
-    ``depth = D + Dx du + Dy dv``, and with derivatives ``bary_dx = (A - bary sum(A)) / S``,
-    ``bary_dy = (B - bary sum(B)) / S``. Backward: the closed-form derivative with respect
-    to the table, accumulated per row with ``index_add_`` (deterministic on CPU).
+    ``l = L + A du + B dv``, ``S = sum(l)`` (1 where 0), ``bary = l / S``, and with
+    derivatives ``bary_dx = (A - bary sum(A)) / S``, ``bary_dy = (B - bary sum(B)) / S``;
+    or (``depth=True``) only ``depth = D + Dx du + Dy dv`` (a separate, lazy pass: most
+    callers never read it). Backward: the closed-form derivative with respect to the table,
+    accumulated per row with ``index_add_`` (deterministic on CPU).
 
     Inputs: table (FACE_TABLE_ROWS, M), ref (2, M) reference column and row (float), rows
     (N,) int64 table row per pixel, pixels (N,) int64 flat pixel index, resolution (H, W),
-    derivatives (bool). Outputs: bary (3, N), depth (N,), and with derivatives bary_dx,
-    bary_dy (3, N).
+    derivatives (bool), depth (bool). Outputs: bary (3, N) and with derivatives bary_dx,
+    bary_dy (3, N); or depth (N,).
     """
 
     @staticmethod
-    def forward(ctx, table, ref, rows, pixels, resolution, derivatives):
+    def forward(ctx, table, ref, rows, pixels, resolution, derivatives, depth):
         n, dt = rows.numel(), table.dtype
         keep = ctx.needs_input_grad[0]
-        bary = table.new_empty(3, n)
-        depth = table.new_empty(n)
+        ctx.depth = depth
+        used = slice(FT_D, FT_DY + 1) if depth else slice(0, FT_B.stop)
+        sub = table[used]
+        out = table.new_empty(n) if depth else table.new_empty(3, n)
         ddx = table.new_empty(3, n) if derivatives else None
         ddy = table.new_empty(3, n) if derivatives else None
         uv = table.new_empty(2, n) if keep else None
-        inv_s = table.new_empty(n) if keep else None
+        inv_s = table.new_empty(n) if keep and not depth else None
         c = min(n, PIXEL_CHUNK)
-        g = table.new_empty(FACE_TABLE_ROWS, c)
+        g = table.new_empty(sub.shape[0], c)
         gr = table.new_empty(2, c)
         inv_buf = table.new_empty(c)
         for sl in pixel_slices(n):
             m = sl.stop - sl.start
             r = rows[sl]
-            gather = gather_rows(table, r, g[:, :m])  # (FACE_TABLE_ROWS, m)
+            gather = gather_rows(sub, r, g[:, :m])
             ref_g = gather_rows(ref, r, gr[:, :m])
             col, row = _pixel_coords(pixels[sl], *resolution)
             du = col.to(dt).sub_(ref_g[0])
             dv = row.to(dt).sub_(ref_g[1])
+            if keep:
+                uv[0, sl], uv[1, sl] = du, dv
+            if depth:  # rows D, Dx, Dy
+                torch.addcmul(gather[0], gather[1], du, out=out[sl]).addcmul_(gather[2], dv)
+                continue
             lam = torch.addcmul(gather[FT_L], gather[FT_A], du).addcmul_(gather[FT_B], dv)
             inv = torch.sum(lam, 0, out=inv_buf[:m])
             inv.masked_fill_(inv == 0, 1.0).reciprocal_()
-            torch.mul(lam, inv, out=bary[:, sl])
-            torch.addcmul(gather[FT_D], gather[FT_DX], du, out=depth[sl]).addcmul_(
-                gather[FT_DY], dv)
+            torch.mul(lam, inv, out=out[:, sl])
             if derivatives:
-                bs = bary[:, sl]
-                for out, rows_ab in ((ddx, FT_A), (ddy, FT_B)):
+                bs = out[:, sl]
+                for dest, rows_ab in ((ddx, FT_A), (ddy, FT_B)):
                     torch.addcmul(gather[rows_ab], bs, gather[rows_ab].sum(0), value=-1.0,
-                                  out=out[:, sl]).mul_(inv)
+                                  out=dest[:, sl]).mul_(inv)
             if keep:
-                uv[0, sl], uv[1, sl] = du, dv
                 inv_s[sl] = inv
-        outs = (bary, depth) + ((ddx, ddy) if derivatives else ())
+        outs = (out,) + ((ddx, ddy) if derivatives else ())
         if keep:
             ctx.save_for_backward(table, rows, uv, inv_s, *outs)
         ctx.set_materialize_grads(False)
         return outs
 
     @staticmethod
-    def backward(ctx, g_bary, g_depth, g_ddx=None, g_ddy=None):
-        table, rows, uv, inv_s, bary, _, *dd = ctx.saved_tensors
+    def backward(ctx, g_out, g_ddx=None, g_ddy=None):
+        table, rows, uv, inv_s, bary, *dd = ctx.saved_tensors
         grad = torch.zeros_like(table)
         if g_ddx is None and g_ddy is None:
             dd = []
         for sl in pixel_slices(rows.numel()):
-            r, du, dv, inv = rows[sl], uv[0, sl], uv[1, sl], inv_s[sl]
-            b = bary[:, sl]
-            contrib = {}
-            gb = None if g_bary is None else g_bary[:, sl]
-            gl_extra = None
-            if dd:
-                g = table.index_select(1, r)
-                for gd, d, rows_ab, key in ((g_ddx, dd[0], FT_A, "A"), (g_ddy, dd[1], FT_B, "B")):
-                    if gd is None:
-                        continue
-                    gd = gd[:, sl]
-                    # d_i = (X_i - b_i sum(X)) / S
-                    contrib[key] = (gd - (gd * b).sum(0)) * inv
-                    gb_d = -gd * (g[rows_ab].sum(0) * inv)
-                    gb = gb_d if gb is None else gb + gb_d
-                    gs = -(gd * d[:, sl]).sum(0) * inv
-                    gl_extra = gs if gl_extra is None else gl_extra + gs
+            r, du, dv = rows[sl], uv[0, sl], uv[1, sl]
             rows_grad = []
-            if gb is not None or gl_extra is not None:
-                gl = torch.zeros_like(b) if gb is None else (gb - (gb * b).sum(0)) * inv
-                if gl_extra is not None:
-                    gl = gl + gl_extra
-                ga, gbb = gl * du, gl * dv
-                if "A" in contrib:
-                    ga = ga + contrib["A"]
-                if "B" in contrib:
-                    gbb = gbb + contrib["B"]
-                rows_grad += [(FT_L, gl), (FT_A, ga), (FT_B, gbb)]
-            if g_depth is not None:
-                gz = g_depth[sl]
-                rows_grad += [(FT_D, gz), (FT_DX, gz * du), (FT_DY, gz * dv)]
+            if ctx.depth:
+                if g_out is not None:
+                    gz = g_out[sl]
+                    rows_grad = [(FT_D, gz), (FT_DX, gz * du), (FT_DY, gz * dv)]
+            else:
+                rows_grad = _bary_row_grads(table, r, du, dv, inv_s[sl], bary[:, sl],
+                                            None if g_out is None else g_out[:, sl],
+                                            [None if gd is None else gd[:, sl]
+                                             for gd in (g_ddx, g_ddy)] if dd else [],
+                                            [d[:, sl] for d in dd])
             for dest, src in rows_grad:
                 grad[dest].index_add_(grad[dest].dim() - 1, r, src)
-        return grad, None, None, None, None, None
+        return grad, None, None, None, None, None, None
+
+
+def _bary_row_grads(table, r, du, dv, inv, b, gb, g_dd, dd):
+    """Per-pixel gradients of the rows L, A, B of :class:`_PixelPass` (bary mode) for one
+    chunk: ``[(rows, (3, m)), ...]``. gb: grad of bary (3, m) or None; g_dd: grads of
+    bary_dx, bary_dy (each (3, m) or None; [] without derivatives); dd: their values."""
+    contrib = {}
+    gl_extra = None
+    if g_dd:
+        g = table.index_select(1, r)
+        for gd, d, rows_ab in zip(g_dd, dd, (FT_A, FT_B), strict=True):
+            if gd is None:
+                continue
+            # d_i = (X_i - b_i sum(X)) / S
+            contrib[rows_ab.start] = (gd - (gd * b).sum(0)) * inv
+            gb_d = -gd * (g[rows_ab].sum(0) * inv)
+            gb = gb_d if gb is None else gb + gb_d
+            gs = -(gd * d).sum(0) * inv
+            gl_extra = gs if gl_extra is None else gl_extra + gs
+    if gb is None and gl_extra is None:
+        return []
+    gl = torch.zeros_like(b) if gb is None else (gb - (gb * b).sum(0)) * inv
+    if gl_extra is not None:
+        gl = gl + gl_extra
+    ga, gbb = gl * du, gl * dv
+    if FT_A.start in contrib:
+        ga = ga + contrib[FT_A.start]
+    if FT_B.start in contrib:
+        gbb = gbb + contrib[FT_B.start]
+    return [(FT_L, gl), (FT_A, ga), (FT_B, gbb)]
 
 
 def gather_rows(table: torch.Tensor, index: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
