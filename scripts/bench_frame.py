@@ -27,6 +27,13 @@ before import (headless). pyrender is a benchmark-only dependency (``pip install
 
     python scripts/bench_frame.py             # the table, written to docs/benchmarks.md
     python scripts/bench_frame.py --quick     # 256², batch 1, few repeats; no doc update
+    python scripts/bench_frame.py --profile   # top ops + stages of 512², batch 1, no shadows
+    python scripts/bench_frame.py --picture   # docs/images/frame_vs_pyrender.png
+
+``--profile`` writes section ``frame-profile``: torch.profiler's top operators by self CPU
+time and the CPU time of each stage of ``Renderer.forward`` (one call after warm-ups), as
+the "after" table; the "before" table is kept from the section as it was, or replaced with
+``--label before`` (run against an older checkout, e.g. ``PYTHONPATH=<old checkout>``).
 """
 
 from __future__ import annotations
@@ -129,9 +136,146 @@ def timed_turns(fns: dict, repeats: int) -> dict:
     return times
 
 
+#: Stages of ``Renderer.forward`` timed by ``--profile``: (module, attribute, label).
+STAGES = [("torchraster.renderer", "transform_points", "transform"),
+          ("torchraster.renderer", "rasterize", "rasterize"),
+          ("torchraster.renderer", "geometry_pass", "G-buffer (total)"),
+          ("torchraster.gbuffer", "interpolate_packed", "  interpolate"),
+          ("torchraster.gbuffer", "_sample_atlases", "  texture sampling"),
+          ("torchraster.gbuffer", "_material_values", "  material values"),
+          ("torchraster.gbuffer", "_apply_normal_maps", "  normal mapping"),
+          ("torchraster.gbuffer", "to_image", "  scatter to images"),
+          ("torchraster.renderer", "shade", "lighting (shade)"),
+          ("torchraster.renderer", "view_rays", "background rays")]
+
+
+def profile_frame(label: str, source: str, threads: int, rows: int = 12) -> None:
+    """Profile one 512², batch 1, no-shadow ``Renderer`` forward; print and write the
+    ``frame-profile`` section (see the module docstring)."""
+    import importlib
+    import re
+    import shlex
+
+    import torch
+    from torch.profiler import ProfilerActivity, profile, record_function
+
+    import torchraster as tr
+
+    torch.set_num_threads(threads)
+    scene = tr.load_scene(MODEL)
+    mesh, face_material, materials = scene.flatten()
+    lo, hi = mesh.positions.amin(0), mesh.positions.amax(0)
+    center = (lo + hi) / 2
+    radius = float((mesh.positions - center).norm(dim=-1).max())
+    lights = our_lights(center, radius, "none")
+    renderer = tr.Renderer((512, 512), shading="pbr")
+    view, proj, _ = cameras(1, center, radius)
+    rscene = tr.RenderScene.from_mesh(mesh, face_material, materials)
+    for mod_name, attr, name in STAGES:  # label the stages in the profile
+        mod = importlib.import_module(mod_name)
+        fn = getattr(mod, attr, None)
+        if fn is None:
+            continue
+
+        def labelled(*a, _fn=fn, _name=name, **k):
+            with record_function("stage: " + _name.strip()):
+                return _fn(*a, **k)
+
+        setattr(mod, attr, labelled)
+
+    def frame():
+        with torch.no_grad():
+            return renderer(rscene, view, proj, lights).image
+
+    for _ in range(3):
+        frame()
+    wall = statistics.median(timed_turns({"ours": frame}, 5)["ours"]) * 1e3
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        frame()
+    events = prof.key_averages()
+    total = sum(e.self_cpu_time_total for e in events) / 1e3
+    stage = {e.key[len("stage: "):]: e.cpu_time_total / 1e3 for e in events
+             if e.key.startswith("stage: ")}
+    ops = sorted((e for e in events if not e.key.startswith("stage: ")),
+                 key=lambda e: -e.self_cpu_time_total)[:rows]
+    from benchmd import markdown_table, update_section
+
+    run = "python " + shlex.join([os.path.relpath(sys.argv[0])] + sys.argv[1:])
+    stage_rows = [[name, stage[name.strip()]] for _, _, name in STAGES if name.strip() in stage]
+    op_rows = [[e.key, e.self_cpu_time_total / 1e3, 100 * e.self_cpu_time_total / 1e3 / total,
+                e.count] for e in ops]
+    block = (f"### {label}\n\n"
+             f"Code: {source}; forward {wall:.1f} ms (median of 5, no profiler); profiled call: "
+             f"{total:.1f} ms self CPU in total. Run: `{run}`.\n\n"
+             + markdown_table(["stage (CPU total, ms)", "ms"], stage_rows) + "\n\n"
+             + markdown_table(["top op by self CPU", "self ms", "% of total", "calls"], op_rows)
+             + "\n")
+    print(block)
+    doc = Path(__file__).resolve().parent.parent / "docs" / "benchmarks.md"
+    old = doc.read_text() if doc.exists() else ""
+    match = re.search(r"<!-- begin frame-profile -->(.*?)<!-- end frame-profile -->", old, re.S)
+    blocks = {}
+    if match:
+        for m in re.finditer(r"(### (before|after).*?)(?=### (?:before|after)|\nCommand:|$)",
+                             match.group(1), re.S):
+            blocks[m.group(2)] = m.group(1).rstrip() + "\n"
+    blocks[label] = block
+    body = ("## Full-frame profile (512², batch 1, no shadows)\n\n"
+            "DamagedHelmet as in *Full frame vs pyrender*, `Renderer(...)` forward under "
+            f"`no_grad`, torch with {threads} threads; torch.profiler (CPU), stages labelled "
+            "with `record_function` around the functions `Renderer.forward` calls (stage rows "
+            "include their children). Before: the commit named there; after: this tree.\n\n"
+            + "\n".join(blocks[k] for k in ("before", "after") if k in blocks))
+    update_section("frame-profile", body, command=run)
+
+
+def picture(threads: int, res: int = 256) -> None:
+    """docs/images/frame_vs_pyrender.png: the no-shadow frame by pyrender and by us (linear
+    radiance clamped to [0, 1], sRGB-encoded, as pyrender writes its colour buffer)."""
+    import numpy as np
+    import torch
+    from PIL import Image
+
+    import torchraster as tr
+
+    torch.set_num_threads(threads)
+    scene = tr.load_scene(MODEL)
+    mesh, face_material, materials = scene.flatten()
+    lo, hi = mesh.positions.amin(0), mesh.positions.amax(0)
+    center = (lo + hi) / 2
+    radius = float((mesh.positions - center).norm(dim=-1).max())
+    view, proj, near = cameras(1, center, radius)
+    with torch.no_grad():
+        img = tr.Renderer((res, res), shading="pbr")(
+            tr.RenderScene.from_mesh(mesh, face_material, materials), view, proj,
+            our_lights(center, radius, "none")).image[0]
+    x = img.clamp(0, 1)
+    x = torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(1e-12) ** (1 / 2.4) - 0.055)
+    ours = (x.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
+    pyrender = load_pyrender()
+    pr_scene = pyrender_scene(pyrender, center, radius)
+    pr_scene.add(pyrender.PerspectiveCamera(yfov=math.radians(FOV_DEG), znear=near,
+                                            aspectRatio=1.0),
+                 pose=torch.linalg.inv(view.double())[0].numpy())
+    offscreen = pyrender.OffscreenRenderer(res, res)
+    theirs = offscreen.render(pr_scene)[0][..., :3]
+    offscreen.delete()
+    out = Path(__file__).resolve().parent.parent / "docs" / "images" / "frame_vs_pyrender.png"
+    Image.fromarray(np.concatenate([theirs, ours], 1)).save(out, optimize=True)
+    print(f"wrote {out} ({out.stat().st_size // 1024} KB)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--picture", action="store_true",
+                    help="write docs/images/frame_vs_pyrender.png (pyrender | ours, 256²)")
     ap.add_argument("--quick", action="store_true", help="256², batch 1, 3 repeats, no doc")
+    ap.add_argument("--profile", action="store_true",
+                    help="profile 512², batch 1, no shadows; write section frame-profile")
+    ap.add_argument("--label", choices=("before", "after"), default="after",
+                    help="which table of the profile section --profile writes")
+    ap.add_argument("--source", default="this tree",
+                    help="what code was profiled (printed above the --profile table)")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--threads", type=int, default=os.cpu_count() or 1,
                     help="torch intra-op threads = LP_NUM_THREADS of llvmpipe")
@@ -144,6 +288,13 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     if not MODEL.exists():
         print(f"{MODEL} not found: nothing to do")
+        return
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    if args.profile:
+        profile_frame(args.label, args.source, args.threads)
+        return
+    if args.picture:
+        picture(args.threads)
         return
     scene = tr.load_scene(MODEL)
     mesh, face_material, materials = scene.flatten()
@@ -161,12 +312,15 @@ def main() -> None:
     batches = [1] if args.quick else [1, 8]
     repeats = 3 if args.quick else args.repeats
     rows, notes, gl_name = [], [], "n/a"
-    flag_of = {"none": "NONE", "sun": "SHADOWS_DIRECTIONAL", "all": "SHADOWS_ALL"}
-    for shadows in ("none", "sun", "all"):
-        lights = our_lights(center, radius, shadows)
+    flag_of = {"none": "NONE", "sun": "SHADOWS_DIRECTIONAL",
+               "sun, uncached": "SHADOWS_DIRECTIONAL", "all": "SHADOWS_ALL"}
+    for shadows in ("none", "sun", "sun, uncached", "all"):
+        lights = our_lights(center, radius, shadows.split(",")[0])
         pr_scene = pyrender_scene(pyrender, center, radius) if pyrender else None
         for res in sizes:
             renderer = tr.Renderer((res, res), shading="pbr")
+            if shadows.endswith("uncached"):
+                renderer.shadow_cache = None  # every call renders its shadow maps
             offscreen = pyrender.OffscreenRenderer(res, res) if pyrender else None
             if offscreen is not None and gl_name == "n/a":
                 from OpenGL import GL
@@ -255,12 +409,22 @@ def main() -> None:
         "`no_grad`; *forward+backward*: gradients to the vertex positions and the point-light "
         "intensities; *pyrender*: `OffscreenRenderer.render` (colour + depth read back), "
         f"{gl_name}, LP_NUM_THREADS={args.threads}, torch with {args.threads} threads, in the "
-        "same process. Shadows: every light `cast_shadows` (default `ShadowSettings`: maps "
-        "rendered by our rasterizer, PCF) vs pyrender `RenderFlags.SHADOWS_ALL`. Medians of "
+        "same process. Shadows (default `ShadowSettings`: maps rendered by our rasterizer, "
+        "4-tap PCF): *sun*: the directional light casts (pyrender "
+        "`RenderFlags.SHADOWS_DIRECTIONAL`); our shadow maps are cached by content across "
+        "calls (`Renderer.shadow_cache`: casters and lights do not move here, so after the "
+        "warm-up no map is rendered, and the batch's 8 cameras share the sun's map); *sun, "
+        "uncached*: the same with `renderer.shadow_cache = None` (every call renders its "
+        "map, as pyrender does); *all*: every light casts (cube maps for the point lights) vs "
+        "`RenderFlags.SHADOWS_ALL`. Medians of "
         f"{repeats} turns after a warm-up; *ours / pyrender* is the median of the per-turn "
         f"ratios (< 1: we are faster).\n\n{table}\n\n"
         f"pyrender problems:\n{note}\n\n"
-        "pyrender runtime patches (numpy 2): `np.infty = np.inf`; `PYOPENGL_PLATFORM=egl`.\n"
+        "pyrender runtime patches (numpy 2): `np.infty = np.inf`; `PYOPENGL_PLATFORM=egl`.\n\n"
+        "Load average at the end of the run (1/5/15 min): "
+        + " / ".join(f"{x:.1f}" for x in os.getloadavg())
+        + f" on {os.cpu_count()} cores (the machine is shared: other processes slow both "
+        "sides; compare the per-turn ratios).\n"
     )
     update_section("frame", body)
 

@@ -14,6 +14,12 @@ grows the triangles: peak memory must stay flat.
     python scripts/bench_raster.py              # full table (~10 min on 2 cores)
     python scripts/bench_raster.py --threads 1  # torch and llvmpipe on one thread each
     python scripts/bench_raster.py --quick      # a few rows
+    python scripts/bench_raster.py --profile --before-src /tmp/before --before-label "commit X"
+
+``--profile`` writes the section ``raster-profile``: torch.profiler's top ops by self time
+of the 82k frame, 512², batch 8 row, for this checkout and (``--before-src``: a directory
+holding an older ``torchraster`` package, e.g. ``git archive <rev> torchraster | tar -x -C
+/tmp/before``) the code before.
 """
 
 from __future__ import annotations
@@ -23,6 +29,7 @@ import json
 import math
 import os
 import resource
+import shlex
 import statistics
 import subprocess
 import sys
@@ -113,10 +120,82 @@ def worker(spec: dict) -> dict:
     return out
 
 
-def run(spec: dict) -> dict:
+def profile_worker(spec: dict) -> dict:
+    """Top ops by self CPU time of rasterize + interpolate on the 82k frame (this process's
+    torchraster), per call."""
+    import torch
+    import trimesh
+    from torch.profiler import profile
+
+    import torchraster as tr
+
+    b, res = spec["batch"], spec["res"]
+    torch.set_num_threads(spec["threads"])
+    mesh = trimesh.creation.icosphere(subdivisions=SUBDIV["80k"])
+    verts = torch.tensor(mesh.vertices, dtype=torch.float32)
+    faces = torch.tensor(mesh.faces, dtype=torch.int64)
+    g = torch.Generator().manual_seed(0)
+    az, el = torch.rand(b, generator=g) * 360, torch.rand(b, generator=g) * 140 - 70
+    view = tr.camera.orbit(az, el, torch.full((b,), 2.6))
+    clip = tr.camera.transform_points(verts, tr.camera.perspective(45.0, 1.0, 0.1) @ view)
+    normals = verts.expand(b, -1, -1).contiguous()
+
+    def ours():
+        with torch.no_grad():
+            return tr.interpolate(normals, tr.rasterize(clip, faces, (res, res)), faces)
+
+    ours()
+    reps = spec["repeats"]
+    with profile() as prof:
+        for _ in range(reps):
+            ours()
+    events = sorted(prof.key_averages(), key=lambda e: -e.self_cpu_time_total)
+    total = sum(e.self_cpu_time_total for e in events)
+    top = [[e.key, e.self_cpu_time_total / reps / 1e3, 100 * e.self_cpu_time_total / total,
+            e.count // reps] for e in events[:spec["top"]]]
+    plain = [time.process_time()]
+    ours()
+    plain.append(time.process_time())
+    return {"top": top, "total_ms": total / reps / 1e3, "cpu_ms": (plain[1] - plain[0]) * 1e3,
+            "ops": sum(e.count for e in events) // reps}
+
+
+def profile_section(args) -> None:
+    """Profile the 82k frame row (this checkout, and the code in ``--before-src``) and
+    write section ``raster-profile`` of docs/benchmarks.md."""
+    from benchmd import markdown_table, update_section
+
+    spec = {"res": 512, "batch": 8, "repeats": 3, "top": 12, "threads": args.threads,
+            "profile": True}
+    sources = [("before", args.before_src)] if args.before_src else []
+    sources.append(("after", None))
+    parts = []
+    for label, src in sources:
+        r = run(spec, pythonpath=src)
+        print(label, json.dumps(r), flush=True)
+        rows = [[name, ms, pct, calls] for name, ms, pct, calls in r["top"]]
+        where = (args.before_label or f"code in {src}") if src else "this checkout"
+        parts.append(f"**{label}** ({where}): "
+                     f"{r['total_ms']:.0f} ms of op self time per call under the profiler "
+                     f"({r['ops']} op calls per call; {r['cpu_ms']:.0f} ms CPU time of one "
+                     "call without it)\n\n"
+                     + markdown_table(["op", "self ms / call", "% of self time",
+                                       "calls / call"], rows))
+    body = ("### Profile: 82k frame, 512², batch 8 (rasterize + interpolate, no grad)\n\n"
+            "Top ops by self CPU time (torch.profiler, mean of 3 profiled calls after a "
+            f"warm-up, {args.threads} torch thread{'s' * (args.threads > 1)}). The machine is "
+            "shared: compare the "
+            "shares and call counts more than absolute times.\n\n" + "\n\n".join(parts))
+    argv = [os.path.relpath(sys.argv[0])] + sys.argv[1:]
+    update_section("raster-profile", body, command="python " + shlex.join(argv))
+
+
+def run(spec: dict, pythonpath: str | None = None) -> dict:
     """Run ``worker(spec)`` in a fresh subprocess (clean peak-memory accounting), with
     llvmpipe on as many threads as torch."""
     env = {**os.environ, "LP_NUM_THREADS": str(spec["threads"])}
+    if pythonpath:
+        env["PYTHONPATH"] = os.pathsep.join([pythonpath, env.get("PYTHONPATH", "")])
     res = subprocess.run([sys.executable, __file__, "--worker", json.dumps(spec)],
                          capture_output=True, text=True, check=True, env=env)
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -129,10 +208,20 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=os.cpu_count() or 1,
                     help="torch intra-op threads and LP_NUM_THREADS of llvmpipe (default: "
                          "all cores)")
+    ap.add_argument("--profile", action="store_true",
+                    help="write the profile section (82k frame, 512², batch 8) instead")
+    ap.add_argument("--before-src", help="with --profile: a directory holding an older "
+                    "torchraster package to profile as 'before'")
+    ap.add_argument("--before-label", help="with --before-src: how to name that code in the "
+                    "section (e.g. the commit it was exported from)")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
-        print(json.dumps(worker(json.loads(args.worker))))
+        spec = json.loads(args.worker)
+        print(json.dumps(profile_worker(spec) if spec.get("profile") else worker(spec)))
+        return
+    if args.profile:
+        profile_section(args)
         return
     from benchmd import markdown_table, update_section
 

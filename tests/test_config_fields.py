@@ -92,6 +92,11 @@ AUTO = {"enabled": True, "metering": "percentile", "percentile_low": 0.1,
 SSAO = {"enabled": True, "radius": 0.5, "samples": 8, "bias": 0.0, "softness": 1.0,
         "blur": False}
 SSAO_BASE = {**PBR, "lights": [AMBIENT]}
+# a glossy metal ground under the ball: its mirror rays hit the ball
+SSR = {"enabled": True, "max_steps": 64, "thickness": 0.5, "max_roughness": 0.6,
+       "edge_fade": 0.0, "refine_steps": 4, "blur": True}
+SSR_BASE = {**PBR, "lights": [AMBIENT],
+            "materials": [{"match": "ground", "metallic": 1.0, "roughness": 0.3}]}
 ORBIT = {"orbit": {"azimuth_deg": 30.0, "elevation_deg": 20.0, "distance": 4.0}}
 LOOK = {"look_at": {"eye": [0.5, 1.5, 3.5], "target": [0.0, 0.4, 0.0], "up": [0.0, 1.0, 0.0]}}
 INTRINSICS = {"fx": 20, "fy": 20, "cx": 8, "cy": 8}
@@ -223,6 +228,12 @@ OBJECT_VARIATIONS = {
     "render.alpha_layers": ({**TWO_GLASS, "render": {"alpha_layers": 4, "shading": "pbr"}},
                             {**TWO_GLASS, "render": {"alpha_layers": 1, "shading": "pbr"}}),
     "render.antialias": ({}, {"render": {"antialias": True}}),
+    # a rough metal under the sun: the compensated lobe is brighter
+    "render.multiscatter": ({**PBR, "lights": [SUN], "materials": [{**MATERIAL, "metallic": 1.0,
+                                                                     "roughness": 1.0}]},
+                            {"render": {"shading": "pbr", "multiscatter": False},
+                             "lights": [SUN], "materials": [{**MATERIAL, "metallic": 1.0,
+                                                             "roughness": 1.0}]}),
     "scene.objects.cast_shadows": _object(cast_shadows=False),
     # a sun from the side: the ball's shadow falls on the box
     "scene.objects.receive_shadows": (
@@ -232,6 +243,71 @@ OBJECT_VARIATIONS = {
     "scene.cast_shadows": (OBJECT_BASE, {**OBJECT_BASE, "scene": {"cast_shadows": False}}),
     "scene.receive_shadows": (OBJECT_BASE, {**OBJECT_BASE,
                                             "scene": {"receive_shadows": False}}),
+}
+
+
+# volumetric fog: a point light (always marched) in fog with a little ambient glow
+FOG = {"density": 0.3, "ambient": [0.2, 0.2, 0.2], "steps": 4, "blur": 0.0}
+
+
+def _fog(base: dict | None = None, **change: object) -> tuple[dict, dict]:
+    base = FOG if base is None else base
+    return ({"render": {"shading": "pbr", "fog": base}, "lights": [POINT]},
+            {"render": {"shading": "pbr", "fog": {**base, **change}}, "lights": [POINT]})
+
+
+FOG_VARIATIONS = {
+    "render.fog.enabled": _fog({**FOG, "enabled": False}, enabled=True),
+    "render.fog.density": _fog(density=1.0),
+    "render.fog.height_falloff": _fog(height_falloff=2.0),
+    "render.fog.base_height": _fog({**FOG, "height_falloff": 1.0}, base_height=1.0),
+    "render.fog.color": _fog(color=[1.0, 0.5, 0.2]),
+    "render.fog.ambient": _fog(ambient=[0.5, 0.0, 0.0]),
+    "render.fog.anisotropy": _fog(anisotropy=0.8),
+    "render.fog.steps": _fog(steps=1),
+    "render.fog.jitter": _fog(jitter=False),
+    "render.fog.blur": _fog(blur=2.0),
+    "render.fog.max_distance": _fog(max_distance=2.0),
+    "render.fog.seed": _fog(seed=3),
+}
+
+
+# shading models, background image, dissolve (issue 12 item 3)
+TOON = {"lights": [SUN], "render": {"shading": "toon"}}
+
+
+def _toon(base: dict, **change: object) -> tuple[dict, dict]:
+    return ({**TOON, "render": {"shading": "toon", "toon": base}},
+            {**TOON, "render": {"shading": "toon", "toon": {**base, **change}}})
+
+
+# a square image in a 16 x 12 frame: cover crops it, contain letterboxes it
+BG_FRAME = {"resolution": [16, 12], "background": [0.0, 1.0, 0.0]}
+DISSOLVE = {"threshold": 0.5}
+
+
+def _dissolve(**change: object) -> tuple[dict, dict]:
+    return ({"render": {"dissolve": DISSOLVE}},
+            {"render": {"dissolve": {**DISSOLVE, **change}}})
+
+
+STYLE_VARIATIONS = {
+    "render.toon.bands": _toon({"bands": 3}, bands=1),
+    "render.toon.rim": _toon({"rim_width": 0.9}, rim=2.0),
+    "render.toon.rim_width": _toon({"rim": 2.0, "rim_width": 0.1}, rim_width=0.9),
+    "render.background_image.path": (
+        {"render": {**BG_FRAME, "background_image": {"path": "tex.png"}}},
+        {"render": {**BG_FRAME, "background_image": {"path": "override.png"}}}),
+    "render.background_image.fit": (
+        {"render": {**BG_FRAME, "background_image": {"path": "tex.png"}}},
+        {"render": {**BG_FRAME, "background_image": {"path": "tex.png", "fit": "contain"}}}),
+    "render.dissolve.threshold": _dissolve(threshold=0.3),
+    "render.dissolve.edge_width": _dissolve(edge_width=0.3),
+    "render.dissolve.edge_color": _dissolve(edge_color=[0.0, 1.0, 0.0]),
+    "render.dissolve.edge_intensity": _dissolve(edge_intensity=10.0),
+    "render.dissolve.scale": _dissolve(scale=1.0),
+    "render.dissolve.octaves": _dissolve(octaves=1),
+    "render.dissolve.seed": _dissolve(seed=5),
 }
 
 
@@ -285,6 +361,8 @@ VARIATIONS: dict[str, tuple[dict, dict]] = {
     "render.cull_backfaces": ({"cameras": [INSIDE]}, {"cameras": [INSIDE],
                                                       "render": {"cull_backfaces": True}}),
     "render.texture_filter": ({}, {"render": {"texture_filter": "nearest"}}),
+    "render.max_anisotropy": ({"render": {"texture_filter": "anisotropic"}}, {
+        "render": {"texture_filter": "anisotropic", "max_anisotropy": 2}}),
     # lights
     "lights.ambient.type": (_light(AMBIENT), _light({**AMBIENT, "type": "directional"})),
     "lights.ambient.color": (_light(AMBIENT), _light(AMBIENT, color=[0.1, 0.3, 0.2])),
@@ -320,6 +398,13 @@ VARIATIONS: dict[str, tuple[dict, dict]] = {
                                  {"environment": {"path": "sky.hdr", "rotation_deg": 90}}),
     "environment.background": ({"environment": {"path": "sky.hdr"}},
                                {"environment": {"path": "sky.hdr", "background": False}}),
+    "environment.specular": ({**PBR, "environment": {"path": "sky.hdr"}},
+                             {**PBR, "environment": {"path": "sky.hdr",
+                                                     "specular": "importance"}}),
+    "environment.importance_samples": (
+        {**PBR, "environment": {"path": "sky.hdr", "specular": "importance"}},
+        {**PBR, "environment": {"path": "sky.hdr", "specular": "importance",
+                                "importance_samples": 2}}),
     # materials
     "materials.match": _material(match="no such material"),
     "materials.base_color": _material(base_color=[0.1, 0.2, 1.0]),
@@ -357,10 +442,19 @@ VARIATIONS: dict[str, tuple[dict, dict]] = {
                             {**SSAO_BASE, "post": {"ssao": {**SSAO, key: value}}})
        for key, value in (("radius", 2.0), ("samples", 2), ("bias", 0.5), ("softness", 0.1),
                           ("blur", True))},
+    "post.ssr.enabled": ({**SSR_BASE, "post": {"ssr": {**SSR, "enabled": False}}},
+                         {**SSR_BASE, "post": {"ssr": SSR}}),
+    **{f"post.ssr.{key}": ({**SSR_BASE, "post": {"ssr": SSR}},
+                           {**SSR_BASE, "post": {"ssr": {**SSR, key: value}}})
+       for key, value in (("max_steps", 1), ("thickness", 0.001), ("max_roughness", 0.2),
+                          ("edge_fade", 0.5), ("refine_steps", 0), ("max_distance", 0.05),
+                          ("blur", False))},
     # outputs
     "outputs.channels": ({}, {"outputs": {"channels": ["color", "depth"]}}),
     **SHADOW_VARIATIONS,
     **OBJECT_VARIATIONS,
+    **STYLE_VARIATIONS,
+    **FOG_VARIATIONS,
 }
 
 #: What every variation starts from: a textured ball on a ground plane, all channels.

@@ -11,12 +11,12 @@ PACKAGE = Path(__file__).resolve().parents[1] / "torchraster"
 #: Layers bottom-up (docs/design.md, "Layers"); a module may import its own layer and below.
 LAYERS: list[set[str]] = [
     {"numerics", "_validate"},
-    {"camera", "mesh", "material", "texture", "hdr_io"},
+    {"camera", "mesh", "material", "texture", "anisotropic", "mip_atlas", "hdr_io"},
     {"raster", "io"},
     {"gbuffer", "scene", "testing"},
     {"shading"},
     {"post"},
-    {"renderer", "transparency"},
+    {"renderer", "transparency", "background", "dissolve"},
     {"config", "pipeline", "manifest", "distributed", "data", "cli", "__main__", "__init__"},
 ]
 CONFIG_ONLY = {"pydantic", "yaml"}

@@ -46,6 +46,47 @@ def _keys(clip, faces, res, **kw):
                                          kw.get("tile", 16), 2**20, 320)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_block_classification_matches_per_centre_tests(dtype: torch.dtype) -> None:
+    """Interior-block acceptance of large triangles (binning._classify_blocks, an (R, S)
+    broadcast): a block called full has every centre pass the per-centre edge test of
+    covered_keys, and a block called empty has none; checked centre by centre on random
+    triangles (slivers, huge ones, vertices on pixel centres) and blocks."""
+    from torchraster.raster import binning
+    from torchraster.raster.clip import ScreenTriangles
+
+    gen = torch.Generator().manual_seed(3)
+    n, s = 400, binning.SUB_BLOCK
+    pos = torch.rand(3, 3, n, generator=gen, dtype=F64) * 96 - 16
+    pos[:2, :, : n // 4] = pos[:2, :, : n // 4].round()  # vertices on pixel centres
+    pos[:2, 2, n // 4: n // 2] = (pos[:2, 0, n // 4: n // 2] + pos[:2, 1, n // 4: n // 2]) / 2 \
+        + 1e-3 * torch.rand(2, n // 4, generator=gen, dtype=F64)  # slivers
+    pos = pos.to(dtype)
+    x, y = pos[0], pos[1]
+    area = (x[1] - x[0]) * (y[2] - y[0]) - (x[2] - x[0]) * (y[1] - y[0])
+    tris = ScreenTriangles(pos=pos, area=area, box=torch.zeros(4, n, dtype=torch.int64),
+                           face=torch.arange(n), batch=torch.zeros(n, dtype=torch.int64))
+    coef = binning.setup_triangles(tris).coef
+    ox = torch.randint(-8, 72, (n, 6), generator=gen)
+    oy = torch.randint(-8, 72, (n, 6), generator=gen)
+    full, may = binning._classify_blocks(coef, ox.to(dtype), oy.to(dtype), s)
+    # per-centre test: the same float ops as covered_keys (block_edge vs EDGE_MIN)
+    d = torch.arange(s)
+    px = (ox[:, :, None] + d).to(dtype)  # (n, 6, s) columns
+    py = (oy[:, :, None] + d).to(dtype)
+    inside = torch.ones(n, 6, s, s, dtype=torch.bool)
+    for e in range(3):
+        a, b = coef[binning.EDGE_A][e][:, None, None], coef[binning.EDGE_B][e][:, None, None]
+        c, t = coef[binning.EDGE_C][e][:, None, None, None], coef[binning.EDGE_MIN][e]
+        edge = (b * py + c[..., 0])[..., :, None] + (a * px)[..., None, :]
+        inside &= edge >= t[:, None, None, None]
+    count = inside.sum((2, 3))
+    assert bool((count[full] == s * s).all())
+    assert bool((count[~may] == 0).all())
+    # not vacuous: all three kinds occur
+    assert int(full.sum()) > 50 and int((~may).sum()) > 50 and int((may & ~full).sum()) > 50
+
+
 @pytest.mark.parametrize("case", ["sphere", "soup", "soup_tile4", "big_triangles"])
 def test_occlusion_culling_changes_nothing(case: str, monkeypatch) -> None:
     gen = torch.Generator().manual_seed(5)
@@ -170,8 +211,10 @@ def test_fused_lighting_matches_generic_model(sparse: float, ckpt, monkeypatch) 
     def run(model, rough_in, light_chunk=None):
         gb = GBuffer(position=pos, normal=nrm, albedo=albedo, metallic=metal,
                      roughness=rough_in, mask=mask)
+        # multiscatter=False: the generic model is the single-scattering BRDF
         return lighting.shade(gb, camera_position=eye, lights=lights, model=model,
-                              visibility=vis, light_chunk=light_chunk, checkpoint_chunks=ckpt)
+                              visibility=vis, light_chunk=light_chunk, checkpoint_chunks=ckpt,
+                              multiscatter=False)
 
     def generic(n, v, l, surface):  # same BRDF, through the per-light generic path
         return cook_torrance(n, v, l, surface)

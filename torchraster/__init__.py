@@ -11,13 +11,16 @@ The contract and the layers are described in ``docs/design.md``. In data-flow or
 * light: :class:`Lights` (:class:`DirectionalLights`, :class:`PointLights`,
   :class:`SpotLights`, ambient SH from :func:`sh_from_color`), :class:`Environment`,
   :func:`shade`;
-* the whole frame: :class:`Renderer` -> :class:`RenderOutput`;
+* the whole frame: :class:`Renderer` -> :class:`RenderOutput` (effects:
+  :class:`Dissolve`, background images :func:`load_background` / :func:`fit_background`);
 * post-processing: :mod:`torchraster.post`; YAML configs: :func:`load_config`,
   :func:`render_to_files`.
 """
 
 from . import camera, post, shading
+from .background import fit_background, load_background
 from .config import ConfigError, lights_from_config, load_config, parse_config
+from .dissolve import Dissolve
 from .gbuffer import CHANNELS, GBuffer, geometry_pass
 from .hdr_io import read_hdr
 from .io import MeshFileError, Scene, load_mesh, load_scene, load_spot
@@ -30,14 +33,16 @@ from .scene import RenderScene
 from .shading.ibl import Environment
 from .shading.lighting import shade
 from .shading.lights import DirectionalLights, Lights, PointLights, SpotLights, sh_from_color
+from .shading.volumetric import Fog
 
 __all__ = [
-    "CHANNELS", "ConfigError", "DirectionalLights", "Environment", "Fragments", "GBuffer",
-    "Lights", "Material", "Mesh", "MeshFileError", "NotImplementedWarning", "PointLights",
-    "RenderOutput", "RenderPlan", "RenderScene", "Renderer", "Scene", "SpotLights", "antialias",
-    "camera", "geometry_pass", "interpolate", "interpolate_with_derivatives", "lights_from_config",
-    "load_config", "load_mesh", "load_scene", "load_spot", "pack_meshes", "parse_config", "post",
-    "rasterize", "read_hdr", "render_config", "render_to_files", "sh_from_color", "shade",
-    "shading", "vertex_normals",
+    "CHANNELS", "ConfigError", "DirectionalLights", "Dissolve", "Environment", "Fog", "Fragments",
+    "GBuffer", "Lights", "Material", "Mesh", "MeshFileError", "NotImplementedWarning",
+    "PointLights", "RenderOutput", "RenderPlan", "RenderScene", "Renderer", "Scene", "SpotLights",
+    "antialias", "camera", "fit_background", "geometry_pass", "interpolate",
+    "interpolate_with_derivatives", "lights_from_config", "load_background", "load_config",
+    "load_mesh", "load_scene", "load_spot", "pack_meshes", "parse_config", "post", "rasterize",
+    "read_hdr", "render_config", "render_to_files", "sh_from_color", "shade", "shading",
+    "vertex_normals",
 ]
 __version__ = "0.1.0"

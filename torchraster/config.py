@@ -54,9 +54,23 @@ from pydantic import (
     model_validator,
 )
 
-from .post import SSAO, AutoExposure, Bloom, DepthOfField, EncodeSRGB, Exposure, PostChain, ToneMap
+from .anisotropic import MAX_TEXTURE_ANISOTROPY
+from .background import FITS, load_background
+from .dissolve import MAX_OCTAVES, Dissolve
+from .post import (
+    SSAO,
+    SSR,
+    AutoExposure,
+    Bloom,
+    DepthOfField,
+    EncodeSRGB,
+    Exposure,
+    PostChain,
+    ToneMap,
+)
 from .post.tonemap import CURVES
-from .renderer import SHADING, Renderer
+from .renderer import LIT_MODELS, SHADING, Renderer
+from .shading.ibl import SPECULAR_MODES, Environment
 from .shading.lights import (
     DEFAULT_COLOR,
     DEFAULT_DIRECTION,
@@ -69,7 +83,9 @@ from .shading.lights import (
     PointLights,
     SpotLights,
 )
+from .shading.models import model_options
 from .shading.shadows import FILTERS, PATTERNS, ShadowSettings
+from .shading.volumetric import MAX_ANISOTROPY, MAX_DENSITY, Fog
 
 #: YAML nodes a config may expand to (aliases expanded): far above any real config, far
 #: below what a "billion laughs" document would make us allocate.
@@ -79,6 +95,7 @@ MAX_SUPERSAMPLED_SIDE: int = 16384
 #: Largest image side of ``render.resolution``.
 MAX_RESOLUTION: int = 16384
 MAX_SSAO_SAMPLES: int = 1024
+MAX_SSR_STEPS: int = 4096
 MAX_DOF_LEVELS: int = 64
 MAX_BLOOM_LEVELS: int = 16
 #: Most views one ``random_orbits`` camera entry may expand to (per object).
@@ -326,6 +343,92 @@ class CameraConfig(_Strict):
         return self
 
 
+class ToonConfig(_Strict):
+    """Options of ``shading: toon`` (:func:`torchraster.shading.models.toon`)."""
+
+    bands: Annotated[int, Field(ge=1, le=64)] = Field(
+        model_options("toon")["bands"], description="diffuse levels above black")
+    rim: NonNeg = Field(model_options("toon")["rim"], description="rim light brightness "
+                        "(relative to a fully lit white surface; 0 = no rim)")
+    rim_width: Annotated[float, Field(ge=0, le=1)] = Field(
+        model_options("toon")["rim_width"], description="the rim covers n.v < rim_width "
+        "(silhouette side, lit side only)")
+
+
+class BackgroundImageConfig(_Strict):
+    """An image behind the scene (:mod:`torchraster.background`): PNG / JPEG / ... (sRGB,
+    decoded to linear) or ``.hdr`` / ``.exr`` (linear), relative to the config file."""
+
+    path: str = Field(description="the image file")
+    fit: Literal[FITS] = Field(  # type: ignore[valid-type]
+        default_of(Renderer, "background_fit"), description="cover: fill the frame, crop "
+        "the overflow; contain: fit inside, bars in `render.background`; stretch: fill, "
+        "aspect not kept")
+
+
+class FogConfig(_Strict):
+    """Exponential height fog lit by the lights, with light shafts from the lights that cast
+    shadows (see ``torchraster.shading.volumetric``)."""
+
+    enabled: bool = True
+    density: Annotated[float, Field(ge=0, le=MAX_DENSITY)] = Field(
+        default_of(Fog, "density"), description="extinction (1/m) at base_height")
+    height_falloff: NonNeg = Field(default_of(Fog, "height_falloff"),
+                                   description="1/m: density * exp(-falloff (y - base_height));"
+                                   " 0 = homogeneous")
+    base_height: Finite = Field(default_of(Fog, "base_height"), description="world y (m)")
+    color: Annotated[list[Annotated[float, Field(ge=0, le=1)]],
+                     Field(min_length=3, max_length=3)] = Field(
+        default_factory=lambda: list(default_of(Fog, "color")),
+        description="scattering albedo (RGB tint of the fog)")
+    ambient: Color3 = Field(default_factory=lambda: list(default_of(Fog, "ambient")),
+                            description="extra isotropic radiance in-scattered (RGB)")
+    anisotropy: Annotated[float, Field(ge=-MAX_ANISOTROPY, le=MAX_ANISOTROPY)] = Field(
+        default_of(Fog, "anisotropy"), description="Henyey-Greenstein g: > 0 forward "
+        "scattering (halo towards lights)")
+    steps: Annotated[int, Field(ge=1, le=1024)] = Field(
+        default_of(Fog, "steps"), description="march steps (point / spot / shadowed lights)")
+    jitter: bool = Field(default_of(Fog, "jitter"), description="per-pixel jittered march")
+    blur: Annotated[float, Field(ge=0, le=16)] = Field(
+        default_of(Fog, "blur"), description="depth-aware blur of the marched light (px)")
+    max_distance: Positive | None = Field(
+        None, description="distance (m) of the background; null = infinitely far")
+    seed: Annotated[int, Field(ge=0)] = Field(default_of(Fog, "seed"),
+                                              description="offset of the jitter pattern")
+
+    def fog(self) -> Fog | None:
+        """The :class:`~torchraster.shading.volumetric.Fog` of this block (None if disabled)."""
+        if not self.enabled:
+            return None
+        d = self.model_dump(exclude={"enabled", "max_distance"})
+        return Fog(**{**d, "color": tuple(d["color"]), "ambient": tuple(d["ambient"])},
+                   max_distance=math.inf if self.max_distance is None else self.max_distance)
+
+
+class DissolveConfig(_Strict):
+    """The dissolve effect (:mod:`torchraster.dissolve`): surfaces are cut away where a seeded
+    world-space noise falls below ``threshold``, with a glowing band above it."""
+
+    threshold: Annotated[float, Field(ge=0, le=1)] = Field(
+        default_of(Dissolve, "threshold"), description="0 keeps everything, 1 dissolves "
+        "everything; about the fraction of the surface dissolved")
+    edge_width: NonNeg = Field(default_of(Dissolve, "edge_width"),
+                               description="width of the glowing band (noise units)")
+    edge_color: Color3 = Field(default_factory=lambda: list(default_of(Dissolve, "edge_color")),
+                               description="linear RGB of the glow")
+    edge_intensity: NonNeg = Field(default_of(Dissolve, "edge_intensity"),
+                                   description="multiplies edge_color (radiance)")
+    scale: Positive = Field(default_of(Dissolve, "scale"),
+                            description="noise cells per world unit")
+    octaves: Annotated[int, Field(ge=1, le=MAX_OCTAVES)] = default_of(Dissolve, "octaves")
+    seed: Annotated[int, Field(ge=0, lt=2**63)] = Field(default_of(Dissolve, "seed"),
+                                                        description="the noise pattern")
+
+    def build(self) -> Dissolve:
+        """The :class:`~torchraster.dissolve.Dissolve` of this block."""
+        return Dissolve(**{**self.model_dump(), "edge_color": tuple(self.edge_color)})
+
+
 class RenderConfig(_Strict):
     """Image size and shading (``resolution``: ``[H, W]`` or one int for a square)."""
 
@@ -334,23 +437,54 @@ class RenderConfig(_Strict):
     ] = Field(512, description="[H, W] in pixels, or one int for a square image")
     shading: Literal[SHADING] | None = Field(  # type: ignore[valid-type]
         None, description="default: pbr when the config has lights or an environment, else "
-        "headlight. pbr needs lights or an environment; headlight is Lambert lit from the "
-        "camera; unlit is albedo + emissive (both ignore lights, so they refuse them)")
+        "headlight. pbr (Cook-Torrance) and the stylised blinn_phong, half_lambert and toon "
+        "need lights or an environment; headlight is Lambert lit from the camera; unlit is "
+        "albedo + emissive (both ignore lights, so they refuse them)")
+    toon: ToonConfig | None = Field(None, description="options of shading: toon (bands, "
+                                    "rim light); refused with other shading models")
     background: Color3 = Field(
         default_factory=lambda: list(default_of(Renderer, "background")),
         description="linear RGB of empty pixels (the environment replaces it when shown)")
+    background_image: BackgroundImageConfig | None = Field(
+        None, description="an image behind the scene, fitted to the frame (replaces the "
+        "colour and the environment as background)")
+    dissolve: DissolveConfig | None = Field(
+        None, description="the dissolve effect on every surface (cut-outs, alpha_layers "
+        "deep, with a glowing edge)")
     supersample: Annotated[int, Field(ge=1, le=8)] = Field(
         default_of(Renderer, "supersample"),
         description="render at s x the resolution and box-filter down")
     cull_backfaces: bool = Field(default_of(Renderer, "cull_backfaces"),
                                  description="drop back faces of every material")
-    texture_filter: Literal["trilinear", "bilinear", "nearest"] = default_of(
-        Renderer, "texture_filter")
+    texture_filter: Literal["trilinear", "anisotropic", "bilinear", "nearest"] = Field(
+        default_of(Renderer, "texture_filter"), description="anisotropic: up to "
+        "max_anisotropy trilinear probes along each pixel's footprint (sharper on steep "
+        "surfaces, slower)")
+    max_anisotropy: Annotated[int, Field(ge=1, le=MAX_TEXTURE_ANISOTROPY)] = Field(
+        default_of(Renderer, "max_anisotropy"), description="the most probes a pixel of "
+        "texture_filter: anisotropic (refused with the other filters)")
     alpha_layers: Annotated[int, Field(ge=1, le=16)] = Field(
         default_of(Renderer, "alpha_layers"), description="depth layers for MASK / BLEND "
         "materials (what lies behind the nearest K is not seen through them)")
     antialias: bool = Field(default_of(Renderer, "antialias"), description="analytic "
                             "antialiasing of silhouettes (gradients at edges)")
+    fog: FogConfig | None = Field(None, description="volumetric height fog and light shafts")
+    multiscatter: bool = Field(default_of(Renderer, "multiscatter"), description="pbr: "
+                               "multiple-scattering energy compensation of the specular and "
+                               "the diffuse reduced by the specular albedo, for every light")
+
+    @model_validator(mode="after")
+    def _toon_options(self) -> RenderConfig:
+        if self.toon is not None and self.shading not in (None, "toon"):
+            raise ValueError(f"toon: options of shading: toon; shading is {self.shading!r}")
+        return self
+
+    @model_validator(mode="after")
+    def _anisotropy_needs_filter(self) -> RenderConfig:
+        if "max_anisotropy" in self.model_fields_set and self.texture_filter != "anisotropic":
+            raise ValueError(f"max_anisotropy: used by texture_filter anisotropic only; "
+                             f"texture_filter is {self.texture_filter!r}")
+        return self
 
     @model_validator(mode="after")
     def _bounded(self) -> RenderConfig:
@@ -373,6 +507,12 @@ class EnvironmentConfig(_Strict):
     intensity: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 1.0
     rotation_deg: Finite = 0.0
     background: bool = True
+    specular: Literal[SPECULAR_MODES] = Field(  # type: ignore[valid-type]
+        default_of(Environment, "specular"), description="split_sum (prefiltered, fast) or "
+        "importance (per-pixel filtered importance sampling of the GGX lobe)")
+    importance_samples: Annotated[int, Field(ge=1, le=1024)] = Field(
+        default_of(Environment, "importance_samples"),
+        description="samples a pixel for specular: importance")
 
 
 def _shadow_default(name: str) -> Any:
@@ -624,6 +764,22 @@ class SSAOConfig(_Strict):
     blur: bool = default_of(SSAO, "blur")
 
 
+class SSRConfig(_Strict):
+    """Screen-space reflections (replace the environment's specular where the mirror rays
+    hit; pbr shading only; see ``torchraster.post.ssr``)."""
+
+    enabled: bool = False
+    max_steps: Annotated[int, Field(ge=1, le=MAX_SSR_STEPS)] = default_of(SSR, "max_steps")
+    thickness: Positive = Field(default_of(SSR, "thickness"), description="scene units")
+    max_roughness: Annotated[float, Field(gt=0, le=1)] = default_of(SSR, "max_roughness")
+    edge_fade: Annotated[float, Field(ge=0, le=0.5)] = Field(
+        default_of(SSR, "edge_fade"), description="fraction of min(H, W)")
+    refine_steps: Annotated[int, Field(ge=0, le=32)] = default_of(SSR, "refine_steps")
+    max_distance: Annotated[float, Field(gt=0)] = Field(
+        default_of(SSR, "max_distance"), description="scene units (.inf: no limit)")
+    blur: bool = default_of(SSR, "blur")
+
+
 class PostConfig(_Strict):
     """The ``post:`` section of a render config."""
 
@@ -634,6 +790,7 @@ class PostConfig(_Strict):
     tonemap: ToneMapConfig = Field(default_factory=ToneMapConfig)
     encode: EncodeConfig = Field(default_factory=EncodeConfig)
     ssao: SSAOConfig = Field(default_factory=SSAOConfig)
+    ssr: SSRConfig = Field(default_factory=SSRConfig)
 
 
 class MaterialOverride(_Strict):
@@ -697,13 +854,17 @@ class RenderFile(_Strict):
     def _pbr_needs_light(self) -> RenderFile:
         lit = bool(self.lights) or self.environment is not None
         if self.render.shading is None:
-            self.render.shading = "pbr" if lit else "headlight"
-        elif self.render.shading != "pbr" and self.lights:
+            self.render.shading = "toon" if self.render.toon is not None else (
+                "pbr" if lit else "headlight")
+        elif self.render.shading not in LIT_MODELS and self.lights:
             raise ValueError(f"render.shading {self.render.shading!r} ignores 'lights:'; remove "
-                             "them, or use shading: pbr (the default when lights are given)")
-        if self.render.shading == "pbr" and not self.lights and self.environment is None:
-            raise ValueError("render.shading 'pbr' needs light: add a 'lights:' entry or an "
-                             "'environment:', or use shading: headlight / unlit")
+                             "them, or use shading: pbr (the default when lights are given) or "
+                             "another lit model (blinn_phong, half_lambert, toon)")
+        if (self.render.shading in LIT_MODELS and not self.lights
+                and self.environment is None):
+            raise ValueError(f"render.shading {self.render.shading!r} needs light: add a "
+                             "'lights:' entry or an 'environment:', or use shading: "
+                             "headlight / unlit")
         return self
 
     def where(self, *loc: str | int) -> str:
@@ -1159,6 +1320,8 @@ def check_config(cfg: RenderFile) -> None:
                                 "scene.allow_missing_textures: true to render without them)")
     if cfg.environment is not None:
         need_file(("environment", "path"), cfg.environment.path)
+    if cfg.render.background_image is not None:
+        need_file(("render", "background_image", "path"), cfg.render.background_image.path)
     for i, m in enumerate(cfg.materials):
         if m.base_color_texture is not None:
             need_file(("materials", i, "base_color_texture"), m.base_color_texture)
@@ -1215,16 +1378,41 @@ def build_ssao(cfg: PostConfig | SSAOConfig) -> SSAO:
                 blur=c.blur, enabled=c.enabled)
 
 
+def build_ssr(cfg: PostConfig | SSRConfig) -> SSR:
+    """The SSR module of ``post.ssr`` (or an :class:`SSRConfig`)."""
+    c = cfg.ssr if isinstance(cfg, PostConfig) else cfg
+    return SSR(max_steps=c.max_steps, thickness=c.thickness, max_roughness=c.max_roughness,
+               edge_fade=c.edge_fade, refine_steps=c.refine_steps,
+               max_distance=c.max_distance, blur=c.blur, enabled=c.enabled)
+
+
 def build_renderer(cfg: RenderFile, with_environment: bool) -> Renderer:
-    """The :class:`~torchraster.Renderer` of a config's ``render:`` (and ``post.ssao``)."""
+    """The :class:`~torchraster.Renderer` of a config's ``render:`` (and ``post.ssao``,
+    ``post.ssr``)."""
     r = cfg.render
     ssao = build_ssao(cfg.post) if cfg.post is not None and cfg.post.ssao.enabled else None
-    return Renderer(r.size, shading=r.shading, supersample=r.supersample,
+    ssr = build_ssr(cfg.post) if cfg.post is not None and cfg.post.ssr.enabled else None
+    options = r.toon.model_dump() if r.toon is not None else None
+    image = None
+    if r.background_image is not None:
+        path = cfg.resolve(r.background_image.path)
+        try:
+            image = load_background(path)
+        except (OSError, ValueError) as e:
+            where = cfg.where("render", "background_image", "path")
+            raise ConfigError(f"{where}: {e}") from None
+    return Renderer(r.size, shading=r.shading, shading_options=options,
+                    background_image=image,
+                    background_fit=r.background_image.fit if image is not None else "cover",
+                    dissolve=r.dissolve.build() if r.dissolve is not None else None,
+                    supersample=r.supersample,
                     cull_backfaces=r.cull_backfaces, background=r.background,
                     environment_background=bool(with_environment and cfg.environment
                                                 and cfg.environment.background),
-                    texture_filter=r.texture_filter, ssao=ssao, alpha_layers=r.alpha_layers,
-                    antialias=r.antialias)
+                    texture_filter=r.texture_filter, max_anisotropy=r.max_anisotropy,
+                    ssao=ssao, ssr=ssr, alpha_layers=r.alpha_layers,
+                    antialias=r.antialias, fog=r.fog.fog() if r.fog is not None else None,
+                    multiscatter=r.multiscatter)
 
 
 def parse_lights(data: object) -> list:
@@ -1412,7 +1600,7 @@ def _models_in(annotation: Any) -> list[type[BaseModel]]:
 
 
 __all__ = [
-    "ConfigError", "RenderFile", "build_post_chain", "build_renderer", "build_ssao",
+    "ConfigError", "RenderFile", "build_post_chain", "build_renderer", "build_ssao", "build_ssr",
     "camera_names", "check_config", "config_reference", "default_of", "expand_cameras",
     "is_mesh_set", "lights_from_config", "load_config", "mesh_set", "object_config",
     "object_name", "parse_config", "parse_lights", "safe_name", "stable_seed", "view_names",

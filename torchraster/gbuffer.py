@@ -38,6 +38,7 @@ import torch
 
 from ._validate import check_tensor
 from .material import Material
+from .mip_atlas import MipAtlas
 from .numerics import safe_normalize
 from .raster import Fragments, interpolate_packed, to_image
 from .texture import MipTexture
@@ -157,7 +158,9 @@ def required_inputs(channels: Iterable[str], materials: Sequence[Material | None
 
 
 class MipCache:
-    """Mip pyramids of constant textures kept across frames, least recently used first out.
+    """Mip pyramids of constant textures kept across frames, least recently used first out
+    (a :class:`~torchraster.texture.MipTexture` per texture, or a
+    :class:`~torchraster.mip_atlas.MipAtlas` per tuple of a material's same-size textures).
 
     Keyed by the texture tensor's identity and version counter (an in-place edit of the
     texture invalidates its entry), the dtype and the device; an entry holds only a weak
@@ -181,20 +184,24 @@ class MipCache:
         """Bytes held by the cached pyramids."""
         return sum(e[2] for e in self._entries.values())
 
-    def get(self, raw: torch.Tensor, build, dtype: torch.dtype, device: torch.device):
-        """The cached ``build()`` result for texture ``raw`` (built and stored on a miss)."""
-        if raw.requires_grad:
+    def get(self, raw: torch.Tensor | tuple[torch.Tensor, ...], build, dtype: torch.dtype,
+            device: torch.device):
+        """The cached ``build()`` result for texture ``raw`` (or a tuple of textures that
+        ``build`` combines; built and stored on a miss)."""
+        raws = raw if isinstance(raw, tuple) else (raw,)
+        if any(r.requires_grad for r in raws):
             return build()
         self._entries = OrderedDict((k, e) for k, e in self._entries.items()
-                                    if e[0]() is not None)  # drop freed textures
-        key = (id(raw), raw._version, dtype, device)
+                                    if all(r() is not None for r in e[0]))  # drop freed ones
+        key = (tuple((id(r), r._version) for r in raws), dtype, device)
         entry = self._entries.get(key)
-        if entry is not None and entry[0]() is raw:
+        if entry is not None and all(r() is t for r, t in zip(entry[0], raws, strict=True)):
             self._entries.move_to_end(key)
             return entry[1]
         value = build()
-        size = sum(t.numel() * t.element_size() for t in getattr(value, "levels", []))
-        self._entries[key] = (weakref.ref(raw), value, size)
+        size = (value.nbytes if isinstance(value, MipAtlas) else
+                sum(t.numel() * t.element_size() for t in getattr(value, "levels", [])))
+        self._entries[key] = (tuple(weakref.ref(r) for r in raws), value, size)
         while self.nbytes > self.max_bytes and len(self._entries) > 1:
             self._entries.popitem(last=False)
         return value
@@ -213,12 +220,13 @@ def geometry_pass(
     materials: Sequence[Material | None] = (),
     texture_filter: str = "trilinear",
     mip_cache: MipCache | None = None,
+    max_anisotropy: int = 16,
 ) -> GBuffer:
     """Compute the requested G-buffer channels (see the module table).
 
     Args:
         frags: from ``rasterize(..., derivatives=True)`` when textures are sampled
-            trilinearly.
+            trilinearly or anisotropically.
         channels: names from :data:`CHANNELS`.
         positions: ``(B, V, 3)`` or ``(V, 3)`` world positions.
         view: ``(B, 4, 4)`` world -> view matrices.
@@ -227,8 +235,9 @@ def geometry_pass(
         tangents: ``(V, 4)`` or ``(B, V, 4)`` (xyz, handedness) for normal maps.
         face_material: ``(F,)`` int64 index into ``materials`` (None: material 0).
         materials: the materials (None entries = glTF default material).
-        texture_filter: ``"trilinear" | "bilinear" | "nearest"``.
+        texture_filter: ``"trilinear" | "anisotropic" | "bilinear" | "nearest"``.
         mip_cache: a :class:`MipCache` reused across calls for constant textures.
+        max_anisotropy: probes a pixel at most for ``texture_filter="anisotropic"``.
 
     Returns:
         A :class:`GBuffer` holding exactly the requested channels, each ``(B, C, H, W)``.
@@ -272,11 +281,23 @@ def geometry_pass(
         mat_index = torch.zeros(n, dtype=torch.long, device=frags.pixels.device)
     mats = list(materials) or [None]
 
+    trilinear = duv_dx is not None and texture_filter == "trilinear"
+    slots = [k[len("texture:"):] for k in sorted(need) if k.startswith("texture:")]
+    if tangents is None:
+        slots = [s for s in slots if s != "normal"]  # no normal mapping without tangents
+    memo: dict[int, dict[str, torch.Tensor]] = {}
+
     def sample(slot: str, m: int, sel: torch.Tensor) -> torch.Tensor | None:
         """Sample material m's texture ``slot`` at the packed pixels ``sel`` -> (C, n_sel)."""
         mat = mats[m]
         if mat is None or getattr(mat, slot + "_texture") is None:
             return None
+        if trilinear:  # all of the material's textures at once (one mip atlas per size)
+            if m not in memo:
+                memo[m] = _sample_atlases(mat, slots, uv.index_select(1, sel),
+                                          duv_dx.index_select(1, sel),
+                                          duv_dy.index_select(1, sel), mip_cache)
+            return memo[m][slot]
         raw = getattr(mat, slot + "_texture")
 
         def build() -> MipTexture:
@@ -287,10 +308,10 @@ def geometry_pass(
 
         mip = mip_cache.get(raw, build, dtype, device) if mip_cache is not None else build()
         grid = uv.index_select(1, sel)[None, :, None, :]  # (1, 2, 1, n_sel)
-        if duv_dx is not None and texture_filter == "trilinear":
+        if duv_dx is not None and texture_filter in ("trilinear", "anisotropic"):
             ddx = duv_dx.index_select(1, sel)[None, :, None, :]
             ddy = duv_dy.index_select(1, sel)[None, :, None, :]
-            val = mip.sample(grid, ddx, ddy, filter="trilinear")
+            val = mip.sample(grid, ddx, ddy, filter=texture_filter, max_anisotropy=max_anisotropy)
         else:
             val = mip.sample(grid, filter="bilinear" if texture_filter != "nearest"
                                   else "nearest")
@@ -311,7 +332,10 @@ def geometry_pass(
             values = _material_values(mats[m], need_material, lambda s, m=m, sel=sel: sample(
                 s, m, sel), sel.numel(), positions)
             for ch, v in values.items():
-                packed[ch] = packed[ch].index_copy(1, sel, v.expand(-1, sel.numel()))
+                if len(mats) == 1:  # every pixel: no scatter
+                    packed[ch] = v.expand(-1, n).contiguous()
+                else:
+                    packed[ch] = packed[ch].index_copy(1, sel, v.expand(-1, sel.numel()))
         for ch in need_material:
             out[ch] = to_image(packed[ch], frags, fill=0.0)
 
@@ -327,6 +351,30 @@ def geometry_pass(
             nrm = torch.where(frags.front_facing[None], nrm, -nrm)
         out["normal"] = to_image(nrm, frags)
     return GBuffer(**out)
+
+
+def _sample_atlases(mat: Material, slots: list[str], uv: torch.Tensor, duv_dx: torch.Tensor,
+                    duv_dy: torch.Tensor, mip_cache: MipCache | None) -> dict[str, torch.Tensor]:
+    """Trilinear lookups of the material's textures in ``slots`` at ``uv`` ``(2, N)``:
+    ``{slot: (C, N)}``. Textures of one size are stacked in one :class:`MipAtlas` (kept in
+    ``mip_cache``), so the material costs one lookup per texture size."""
+    dtype, device = uv.dtype, uv.device
+    groups: dict[tuple[int, int], list[str]] = {}
+    for slot in slots:
+        raw = getattr(mat, slot + "_texture")
+        if raw is not None:
+            groups.setdefault(tuple(raw.shape[-2:]), []).append(slot)
+    out: dict[str, torch.Tensor] = {}
+    for group in groups.values():
+        def build(group=group) -> MipAtlas:
+            return MipAtlas([mat.texture(s, dtype=dtype, device=device) for s in group],
+                            address="wrap")
+
+        raws = tuple(getattr(mat, s + "_texture") for s in group)
+        atlas = mip_cache.get(raws, build, dtype, device) if mip_cache is not None else build()
+        values = atlas.sample(uv, duv_dx, duv_dy).split(atlas.channels, 0)
+        out.update(zip(group, values, strict=True))
+    return out
 
 
 def _factor(value, like: torch.Tensor) -> torch.Tensor:

@@ -109,6 +109,12 @@ def finish_low_precision(y: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
     return y.to(dtype)
 
 
+def smoothstep(t: torch.Tensor) -> torch.Tensor:
+    """Hermite ``3t^2 - 2t^3`` of ``t`` clamped to [0, 1] (any shape; C1 at both ends)."""
+    t = t.clamp(0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
 def floor_div_exact(a: torch.Tensor, d: int) -> torch.Tensor:
     """``a // d`` for non-negative int64 ``a`` < :data:`FLOOR_DIV_EXACT_LIMIT` and ``d >= 1``.
 

@@ -428,7 +428,9 @@ def view_renderer(cfg: RenderFile, device: str | torch.device = "cpu"
     if cfg.environment is not None:
         radiance = read_hdr(cfg.resolve(cfg.environment.path)).to(device)
         env = Environment(radiance, yaw=math.radians(cfg.environment.rotation_deg),
-                          intensity=cfg.environment.intensity)
+                          intensity=cfg.environment.intensity,
+                          specular=cfg.environment.specular,
+                          importance_samples=cfg.environment.importance_samples)
     # Without a post section: no tone mapping, sRGB encoding only (the linear image clipped).
     post = build_post_chain(cfg.post) if cfg.post is not None else PostChain(
         encode=EncodeSRGB())

@@ -7,36 +7,46 @@
 Data flow (each arrow a pass that runs only when the plan says so)::
 
     scene --transform--> clip --rasterize--> Fragments --geometry_pass--> GBuffer
-      GBuffer (+ SSAO) --shade / headlight / unlit--> radiance --+ background--> image
+      GBuffer (+ SSAO) --shade / headlight / unlit--> radiance (--SSR-->) --+ background--> image
       (supersampled: --box filter--> image, alpha, G-buffer channels)
 
-Shading models: ``"pbr"`` (Cook-Torrance with the given lights / environment),
-``"headlight"`` (Lambert lit from the camera, E = pi, so a white surface facing the camera
-is 1.0; needs no lights), ``"unlit"`` (albedo + emissive). Post-processing is a separate
-``torchraster.post.PostChain`` applied by the caller (the CLI does).
+Shading models: ``"pbr"`` (Cook-Torrance with the given lights / environment), the
+stylised models of :mod:`torchraster.shading.models` ``"blinn_phong"``, ``"half_lambert"``
+and ``"toon"`` (lit by the same lights, shadows, ambient and environment; only the BRDF of
+the punctual lights changes), ``"headlight"`` (Lambert lit from the camera, E = pi, so a
+white surface facing the camera is 1.0; needs no lights), ``"unlit"`` (albedo + emissive).
+Post-processing is a separate ``torchraster.post.PostChain`` applied by the caller (the CLI
+does).
 """
 
 from __future__ import annotations
 
 import logging
 import warnings
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from ._validate import check_resolution, check_tensor
+from .anisotropic import check_max_anisotropy
+from .background import FITS, fit_background
+from .dissolve import Dissolve
 from .gbuffer import CHANNELS, GBuffer, MipCache, check_channels, geometry_pass
 from .mesh import transform_points, vertex_normals
 from .numerics import safe_normalize
+from .post.ssr import environment_specular, specular_weight
 from .raster import antialias, rasterize
 from .scene import RenderScene, as_render_scene
 from .shading.ibl import Environment, shade_ibl
 from .shading.lighting import shade
 from .shading.lights import Lights
+from .shading.models import get_model
 from .shading.shadows import (
+    ShadowMapCache,
     ShadowMaps,
     ShadowSettings,
     directional_views,
@@ -44,6 +54,7 @@ from .shading.shadows import (
     render_shadow_maps,
     shadow_visibility,
 )
+from .shading.volumetric import Fog, apply_fog
 from .transparency import (
     composite_over,
     face_alpha_modes,
@@ -54,10 +65,14 @@ from .transparency import (
 
 log = logging.getLogger("torchraster")
 
-SHADING = ("pbr", "headlight", "unlit")
-TEXTURE_FILTERS = ("trilinear", "bilinear", "nearest")
+SHADING = ("pbr", "blinn_phong", "half_lambert", "toon", "headlight", "unlit")
+#: The lit shading paths and the model of :mod:`torchraster.shading.models` each uses.
+LIT_MODELS = {"pbr": "cook_torrance", "blinn_phong": "blinn_phong",
+              "half_lambert": "half_lambert", "toon": "toon"}
+TEXTURE_FILTERS = ("trilinear", "anisotropic", "bilinear", "nearest")
 _SHADING_NEEDS = {
-    "pbr": {"position", "normal", "albedo", "metallic", "roughness", "ao", "emissive", "mask"},
+    **{name: {"position", "normal", "albedo", "metallic", "roughness", "ao", "emissive", "mask"}
+       for name in LIT_MODELS},
     "headlight": {"position", "normal", "albedo", "mask"},
     "unlit": {"albedo", "emissive", "mask"},
 }
@@ -80,15 +95,19 @@ class RenderPlan:
         supersample: box-filter factor applied at the end (1 = none).
         channels: the G-buffer channels computed.
         requested: the channels the caller asked for (returned in ``RenderOutput.gbuffer``).
-        shading: ``"pbr"``, ``"headlight"`` or ``"unlit"`` (``"pbr"`` without lights and
-            environment is planned as ``"unlit"``).
+        shading: one of :data:`SHADING` (a lit model without lights and environment is
+            planned as ``"unlit"``).
         lights: ``(kind, count)`` of each light type present (count None for ambient).
         ssao: SSAO multiplies the AO before lighting.
         ibl: image-based lighting from the environment.
-        background: ``"environment"``, ``"colour"`` or ``"none"``.
+        background: ``"image <fit>"``, ``"environment"``, ``"colour"`` or ``"none"``.
         cull: back faces dropped: ``"none"``, ``"all"`` (``cull_backfaces=True``) or
             ``"single-sided"`` (faces of materials with ``double_sided=False``).
-        derivatives: screen-space UV derivatives are computed (trilinear texturing).
+        derivatives: screen-space UV derivatives are computed (trilinear or anisotropic
+            texturing).
+        anisotropy: the most probes a pixel of anisotropic texture filtering
+            (``Renderer(texture_filter="anisotropic", max_anisotropy=...)``), 0 when it
+            does not run (another filter, or no material has a texture).
         shadow_lights: ``(kind, light indices, settings)`` of each group of lights whose
             shadow maps are rendered (only lights with ``cast_shadows``, and only when some
             face casts and some face receives).
@@ -98,6 +117,21 @@ class RenderPlan:
         alpha: ``"none"``, ``"mask"`` (cut-outs: the first opaque layer is shaded) or
             ``"blend"`` (every layer shaded and composited front to back).
         antialias: silhouettes antialiased analytically (:func:`~torchraster.antialias`).
+        fog: the steps of the volumetric fog pass (:mod:`~torchraster.shading.volumetric`):
+            empty without ``Renderer(fog=...)``; else the analytic in-scattering, the
+            march of the light shafts (which lights, how many steps) and the blur.
+        multiscatter: the Cook-Torrance energy terms (multiple-scattering compensation and
+            the matching diffuse reduction, :mod:`~torchraster.shading.energy`) for every
+            light type: ``"pbr"`` with lights or an environment and
+            ``Renderer(multiscatter=True)``.
+        ibl_specular: ``"split_sum"`` (prefiltered chain) or ``"importance"`` (per-pixel
+            filtered importance sampling, ``Environment(specular=...)``) when ``ibl``.
+        dissolve: the dissolve effect (:mod:`~torchraster.dissolve`), e.g.
+            ``"dissolve t=0.5 edge 0.05"``; empty without ``Renderer(dissolve=...)``.
+        ssr: screen-space reflections replace the environment's specular where the
+            mirror ray hits (:mod:`~torchraster.post.ssr`): ``Renderer(ssr=SSR(...))``,
+            ``"pbr"`` shading, no ``BLEND`` material, and some material smooth enough
+            (roughness factor below the cut-off, or a metallic-roughness texture).
 
     Iterating a plan yields its human-readable :attr:`steps`.
     """
@@ -118,6 +152,12 @@ class RenderPlan:
     layers: int = 1
     alpha: str = "none"
     antialias: bool = False
+    fog: tuple[str, ...] = ()
+    multiscatter: bool = False
+    dissolve: str = ""
+    ibl_specular: str = "split_sum"
+    anisotropy: int = 0
+    ssr: bool = False
 
     @property
     def steps(self) -> list[str]:
@@ -126,7 +166,9 @@ class RenderPlan:
         layers = f" {self.layers} layers" if self.layers > 1 else ""
         steps = [f"rasterize {self.resolution[0]}x{self.resolution[1]}{layers}{cull}",
                  "gbuffer " + ",".join(sorted(self.channels))]
-        if self.shading == "pbr":
+        if self.anisotropy:
+            steps.append(f"anisotropic texture filtering {self.anisotropy}x")
+        if self.shading in LIT_MODELS:
             if self.shadow_maps:
                 steps += list(self.shadow_maps)
             else:
@@ -134,14 +176,23 @@ class RenderPlan:
                           for kind, ids, s in self.shadow_lights]
             steps += [f"light {kind}" + (f" x{n}" if n else "") for kind, n in self.lights]
             steps += ["ssao"] * self.ssao + ["ibl"] * self.ibl
+            if self.ibl and self.ibl_specular != "split_sum":
+                steps.append(f"ibl specular {self.ibl_specular}")
+            steps += ["ssr"] * self.ssr
+            steps += ["energy compensation"] * self.multiscatter
+            if self.shading != "pbr":
+                steps.append(f"shade {self.shading}")
         else:
             steps.append(self.shading)
+        if self.dissolve:
+            steps.append(self.dissolve)
         if self.alpha == "mask":
             steps.append("alpha mask (first opaque layer)")
         elif self.alpha == "blend":
             steps.append(f"blend {self.layers} layers front to back")
         if self.background != "none":
             steps.append(f"background {self.background}")
+        steps += list(self.fog)
         if self.antialias:
             steps.append("antialias")
         if self.supersample > 1:
@@ -229,15 +280,37 @@ class Renderer(nn.Module):
 
     Args:
         resolution: ``(H, W)`` or an int for a square image.
-        shading: ``"pbr"``, ``"headlight"`` or ``"unlit"``.
+        shading: one of :data:`SHADING`: ``"pbr"`` (Cook-Torrance), the stylised
+            ``"blinn_phong"``, ``"half_lambert"``, ``"toon"`` (same lights, shadows,
+            ambient and environment as pbr, another BRDF for the punctual lights; see
+            :mod:`torchraster.shading.models`), ``"headlight"`` or ``"unlit"``.
+        shading_options: keyword parameters of the shading model, e.g.
+            ``{"bands": 4, "rim": 0.5}`` for ``"toon"`` (see
+            :func:`~torchraster.shading.models.toon`); a name the model does not take
+            raises a ValueError naming it.
         supersample: render at ``s x`` the resolution and box-filter down (anti-aliasing).
         cull_backfaces: drop clockwise (back-facing) triangles.
         background: RGB (3 non-negative finite floats) of empty pixels; replaced by the
             environment when ``environment_background``.
         environment_background: show the environment behind the scene.
-        texture_filter: ``"trilinear"``, ``"bilinear"`` or ``"nearest"``.
+        background_image: ``(3, h, w)`` or ``(B, 3, h, w)`` linear RGB shown behind the
+            scene (where ``alpha < 1``), fitted to the frame by ``background_fit``; it
+            replaces the environment and the colour as background (the colour fills the
+            bars of ``"contain"``). Load files with
+            :func:`~torchraster.background.load_background`.
+        background_fit: ``"cover"`` (fill, crop), ``"contain"`` (letterbox) or
+            ``"stretch"`` (see :mod:`torchraster.background`).
+        texture_filter: ``"trilinear"``, ``"anisotropic"`` (up to ``max_anisotropy``
+            trilinear probes along each pixel's footprint, :mod:`torchraster.anisotropic`),
+            ``"bilinear"`` or ``"nearest"``.
+        max_anisotropy: the most probes a pixel of ``"anisotropic"`` filtering (1 to 64;
+            2 to 16 like GPUs; docs/benchmarks.md, quality-texture, measures each).
         ssao: an enabled ``torchraster.post.SSAO`` module: its AO (from depth and view-space
-            normals) multiplies the material AO before lighting (``"pbr"`` shading only).
+            normals) multiplies the material AO before lighting (lit models only).
+        ssr: an enabled ``torchraster.post.SSR`` module: screen-space reflections of the
+            lit frame replace the environment's (IBL and ambient) specular where the
+            mirror rays hit (``"pbr"`` only; planned only when some material may be
+            smoother than its ``max_roughness``; not with ``BLEND`` materials).
         mip_cache_bytes: bound of the cache of constant textures' mip pyramids.
         shadows: render shadow maps for lights with ``cast_shadows`` (False: no shadow
             pass at all, whatever the lights say).
@@ -249,6 +322,18 @@ class Renderer(nn.Module):
             with respect to geometry and camera at silhouettes (``out.alpha`` too).
         shadow_settings: the :class:`~torchraster.shading.shadows.ShadowSettings` of
             shadow-casting lights that carry none of their own (``lights.<kind>.shadow``).
+        fog: a :class:`~torchraster.shading.volumetric.Fog`: exponential height fog lit by
+            the lights (applied to surfaces and background before antialiasing). Lights
+            with shadow maps cast light shafts; the others in-scatter unshadowed. With
+            ``"headlight"`` / ``"unlit"`` shading only ``Fog.ambient`` lights the fog.
+        multiscatter: multiple-scattering energy compensation of the Cook-Torrance
+            specular and the diffuse reduced by the specular's albedo, for punctual,
+            ambient and image-based light alike (``"pbr"`` only; see
+            :mod:`torchraster.shading.energy`). False: the single-scattering BRDF.
+        dissolve: a :class:`~torchraster.dissolve.Dissolve`: surfaces are discarded where
+            a seeded noise of their world position falls below its threshold (cut out like
+            glTF ``MASK``, ``alpha_layers`` deep) and glow in a band above it; the glow is
+            differentiable in the threshold.
 
     Example:
         >>> renderer = Renderer(256, shading="headlight")
@@ -260,22 +345,36 @@ class Renderer(nn.Module):
         resolution: tuple[int, int] | int,
         *,
         shading: str = "pbr",
+        shading_options: Mapping[str, Any] | None = None,
         supersample: int = 1,
         cull_backfaces: bool = False,
         background: Sequence[float] = (0.0, 0.0, 0.0),
         environment_background: bool = True,
+        background_image: torch.Tensor | None = None,
+        background_fit: str = "cover",
         texture_filter: str = "trilinear",
+        max_anisotropy: int = 16,
         ssao: nn.Module | None = None,
+        ssr: nn.Module | None = None,
         mip_cache_bytes: int = 512 * 2**20,
         shadows: bool = True,
         shadow_settings: ShadowSettings | None = None,
         alpha_layers: int = 4,
         antialias: bool = False,
+        fog: Fog | None = None,
+        multiscatter: bool = True,
+        dissolve: Dissolve | None = None,
     ) -> None:
         super().__init__()
         self.resolution = check_resolution(resolution)
         if shading not in SHADING:
             raise ValueError(f"shading: expected one of {SHADING}, got {shading!r}")
+        if shading_options and shading not in LIT_MODELS:
+            raise ValueError(f"shading_options: shading {shading!r} takes no options, got "
+                             f"{sorted(shading_options)}")
+        self.shading_options = dict(shading_options or {})
+        self.model = (get_model(LIT_MODELS[shading], **self.shading_options)
+                      if shading in LIT_MODELS else None)
         if isinstance(supersample, bool) or not isinstance(supersample, int) or supersample < 1:
             raise ValueError(f"supersample: expected an int >= 1, got {supersample!r}")
         if texture_filter not in TEXTURE_FILTERS:
@@ -293,19 +392,41 @@ class Renderer(nn.Module):
         self.cull_backfaces = bool(cull_backfaces)
         self.register_buffer("background", bg, persistent=False)
         self.environment_background = bool(environment_background)
+        if background_fit not in FITS:
+            raise ValueError(f"background_fit: expected one of {FITS}, got {background_fit!r}")
+        if background_image is not None:
+            if isinstance(background_image, torch.Tensor) and background_image.dim() == 3:
+                background_image = background_image[None]
+            check_tensor("background_image", background_image, ("B", 3, "h", "w"),
+                         floating=True, finite=True)
+        self.background_image = background_image
+        self.background_fit = background_fit
         self.texture_filter = texture_filter
+        self.max_anisotropy = check_max_anisotropy(max_anisotropy)
         self.ssao = ssao if ssao is not None and getattr(ssao, "enabled", True) else None
+        self.ssr = ssr if ssr is not None and getattr(ssr, "enabled", True) else None
         self.mip_cache = MipCache(mip_cache_bytes)
         if shadow_settings is not None and not isinstance(shadow_settings, ShadowSettings):
             raise TypeError(f"shadow_settings: expected a ShadowSettings or None, got "
                             f"{type(shadow_settings).__name__}")
         self.shadows = bool(shadows)
         self.shadow_settings = shadow_settings or ShadowSettings()
+        # depth maps of static casters and lights reused across calls (None: off)
+        self.shadow_cache: ShadowMapCache | None = ShadowMapCache()
         if isinstance(alpha_layers, bool) or not isinstance(alpha_layers, int) or not (
                 1 <= alpha_layers <= 16):
             raise ValueError(f"alpha_layers: expected an int in [1, 16], got {alpha_layers!r}")
         self.alpha_layers = alpha_layers
         self.antialias = bool(antialias)
+        if fog is not None and not isinstance(fog, Fog):
+            raise TypeError(f"fog: expected a torchraster.shading.volumetric.Fog or None, got "
+                            f"{type(fog).__name__}")
+        self.fog = fog
+        self.multiscatter = bool(multiscatter)
+        if dissolve is not None and not isinstance(dissolve, Dissolve):
+            raise TypeError(f"dissolve: expected a torchraster.dissolve.Dissolve or None, got "
+                            f"{type(dissolve).__name__}")
+        self.dissolve = dissolve
 
     def plan(self, scene: RenderScene, lights: Lights | None = None,
              environment: Environment | None = None, channels: Iterable[str] = ()
@@ -324,26 +445,34 @@ class Renderer(nn.Module):
             raise TypeError(f"environment: expected a torchraster.Environment or None, got "
                             f"{type(environment).__name__}")
         shading = self.shading
-        if shading == "pbr" and lights is None and environment is None:
-            warnings.warn("Renderer(shading='pbr') got no lights and no environment: rendering "
-                          "albedo + emissive (unlit). Pass lights= or environment=, or use "
-                          "shading='unlit' to say so.", stacklevel=3)
+        if shading in LIT_MODELS and lights is None and environment is None:
+            warnings.warn(f"Renderer(shading={shading!r}) got no lights and no environment: "
+                          "rendering albedo + emissive (unlit). Pass lights= or "
+                          "environment=, or use shading='unlit' to say so.", stacklevel=3)
             shading = "unlit"
-        ssao = self.ssao is not None and shading == "pbr"
+        ssao = self.ssao is not None and shading in LIT_MODELS
         modes = {m.alpha_mode for m in scene.materials if m is not None}
         alpha = "blend" if "BLEND" in modes else "mask" if "MASK" in modes else "none"
-        channels = set(requested) | _SHADING_NEEDS[shading] | ({"depth"} if ssao else set())
+        if self.dissolve is not None:
+            alpha = "mask" if alpha == "none" else alpha  # discarded surfaces show what is behind
+        ssr = self._plan_ssr(scene, shading, alpha)
+        channels = set(requested) | _SHADING_NEEDS[shading] | (
+            {"depth"} if ssao or ssr else set())
         if alpha != "none":
             channels.add("alpha")
+        if self.fog is not None or self.dissolve is not None:
+            channels.add("position")
         light_kinds = []
-        if shading == "pbr" and lights is not None:
+        if shading in LIT_MODELS and lights is not None:
             if lights.ambient is not None:
                 light_kinds.append(("ambient", None))
             for kind in ("directional", "point", "spot"):
                 group = getattr(lights, kind)
                 if group is not None and group.count:
                     light_kinds.append((kind, group.count))
-        if environment is not None and self.environment_background:
+        if self.background_image is not None:
+            background = f"image {self.background_fit}"
+        elif environment is not None and self.environment_background:
             background = "environment"
         elif bool((self.background != 0).any()):
             background = "colour"
@@ -355,22 +484,83 @@ class Renderer(nn.Module):
         cull = "all" if self.cull_backfaces else "single-sided" if any(single_sided) else "none"
         s = self.supersample
         shadow_lights = ()
-        if shading == "pbr" and lights is not None and self.shadows:
+        if shading in LIT_MODELS and lights is not None and self.shadows:
             shadow_lights = self._plan_shadows(scene, lights)
+        fog = () if self.fog is None else self._plan_fog(
+            lights if shading in LIT_MODELS else None, shadow_lights)
         return RenderPlan(
             resolution=(self.resolution[0] * s, self.resolution[1] * s), supersample=s,
             channels=frozenset(channels), requested=frozenset(requested), shading=shading,
             lights=tuple(light_kinds), ssao=ssao,
-            ibl=shading == "pbr" and environment is not None, background=background, cull=cull,
-            derivatives=textured and self.texture_filter == "trilinear",
+            ibl=shading in LIT_MODELS and environment is not None, background=background, cull=cull,
+            derivatives=textured and self.texture_filter in ("trilinear", "anisotropic"),
+            anisotropy=self.max_anisotropy if textured and self.texture_filter == "anisotropic"
+            else 0,
             shadow_lights=shadow_lights, layers=self.alpha_layers if alpha != "none" else 1,
-            alpha=alpha, antialias=self.antialias)
+            alpha=alpha, antialias=self.antialias, fog=fog, dissolve=self._plan_dissolve(),
+            multiscatter=self.multiscatter and shading == "pbr" and bool(
+                light_kinds or environment is not None),
+            ibl_specular=environment.specular_mode if environment is not None
+            else "split_sum", ssr=ssr)
+
+    def _plan_ssr(self, scene: RenderScene, shading: str, alpha: str) -> bool:
+        """SSR runs for ``"pbr"`` when some material may be smoother than the cut-off."""
+        if self.ssr is None or shading != "pbr":
+            return False
+        if alpha == "blend":
+            warnings.warn("Renderer(ssr=...): screen-space reflections are not implemented "
+                          "for scenes with BLEND materials; rendered without them",
+                          NotImplementedWarning, stacklevel=4)
+            return False
+        cutoff = getattr(self.ssr, "max_roughness", 1.0)
+        return any(m is not None and (m.metallic_roughness_texture is not None
+                                      or float(m.roughness_factor) < cutoff)
+                   for m in scene.materials)
+
+    def _plan_dissolve(self) -> str:
+        """The dissolve step of the plan ("" without the effect)."""
+        d = self.dissolve
+        if d is None:
+            return ""
+        t = d.threshold
+        if isinstance(t, torch.Tensor):
+            t = float(t.detach().reshape(-1)[0]) if t.numel() == 1 else None
+        t = f"{t:.3g}" if t is not None else f"{d.threshold.numel()} values"
+        return f"dissolve t={t} edge {d.edge_width:g}"
+
+    def _plan_fog(self, lights: Lights | None,
+                  shadow_lights: tuple[tuple[str, tuple[int, ...], ShadowSettings], ...]
+                  ) -> tuple[str, ...]:
+        """The steps of the fog pass: analytic in-scattering (ambient, unshadowed
+        directional lights), the march (point / spot lights, shadowed directional lights:
+        light shafts) and its blur."""
+        fog = self.fog
+        analytic, marched = ["ambient"] if lights is not None and lights.ambient is not None \
+            else [], []
+        shadowed = {(kind, i) for kind, ids, _ in shadow_lights for i in ids}
+        for kind in ("directional", "point", "spot"):
+            part = None if lights is None else getattr(lights, kind)
+            for i in range(0 if part is None else part.count):
+                if (kind, i) in shadowed:
+                    marched.append(f"{kind}[{i}] shadowed")
+                elif kind == "directional":
+                    analytic.append(f"{kind}[{i}]")
+                else:
+                    marched.append(f"{kind}[{i}]")
+        steps = ["fog analytic" + (f" ({', '.join(analytic)})" if analytic else "")]
+        if marched:
+            jitter = " jittered" if fog.jitter else ""
+            steps.append(f"fog march {fog.steps} steps{jitter}: {', '.join(marched)}")
+            if fog.blur > 0:
+                steps.append(f"fog blur {fog.blur:g} px")
+        return tuple(steps)
 
     def _plan_shadows(self, scene: RenderScene, lights: Lights
                       ) -> tuple[tuple[str, tuple[int, ...], ShadowSettings], ...]:
         """Groups of shadow-casting lights with one settings object each; none when no
-        face casts or none receives."""
-        for flags in (scene.cast_shadows, scene.receive_shadows):
+        face casts or none receives (and no fog needs the maps for light shafts)."""
+        receivers = (scene.receive_shadows,) if self.fog is None else ()
+        for flags in (scene.cast_shadows, *receivers):
             if flags is not None and not bool(flags.any()):
                 return ()
         groups: list[tuple[str, tuple[int, ...], ShadowSettings]] = []
@@ -437,7 +627,8 @@ class Renderer(nn.Module):
         gbs = [geometry_pass(f, plan.channels, positions=positions, view=view,
                              normals=normals, uvs=scene.uvs, tangents=scene.tangents,
                              face_material=scene.face_material, materials=scene.materials,
-                             texture_filter=self.texture_filter, mip_cache=self.mip_cache)
+                             texture_filter=self.texture_filter, mip_cache=self.mip_cache,
+                             max_anisotropy=self.max_anisotropy)
                for f in layers]
         eye = camera_position(view.to(positions.dtype))
         groups = None
@@ -445,10 +636,14 @@ class Renderer(nn.Module):
             groups, lights_b = self._shadow_maps(plan, scene, view, proj, lights, b, face_ranges)
             plan = replace(plan, shadow_maps=tuple(st for g in groups for st in g.steps))
 
-        def radiance_of(gb: GBuffer, face_id: torch.Tensor) -> torch.Tensor:
+        def radiance_of(gb: GBuffer, face_id: torch.Tensor,
+                        glow: torch.Tensor | None = None) -> torch.Tensor:
             hook = None if groups is None else self._shadow_hook(groups, lights_b, scene, gb,
                                                                  face_id, view, b)
-            return self._shade(plan, gb, view, proj, eye, lights, environment, hook) * gb.mask
+            rad = self._shade(plan, gb, view, proj, eye, lights, environment, hook)
+            if glow is not None:  # the dissolve's glowing band (0 where discarded)
+                rad = rad + glow.to(rad)
+            return rad * gb.mask
 
         visible = frags  # the face ids / depths antialiasing sees
         if plan.alpha == "none":
@@ -460,6 +655,12 @@ class Renderer(nn.Module):
                                               scene.faces.shape[0], positions.device)
             opacity = [layer_opacity(g, f.face_id, modes, cutoffs) for g, f in zip(
                 gbs, layers, strict=True)]
+            glows = None
+            if plan.dissolve:  # discard below the threshold, like a MASK cut-out; glow above
+                cuts = [self.dissolve.terms(g.position, a) for a, g in zip(opacity, gbs,
+                                                                           strict=True)]
+                opacity = [a * keep.to(a) for a, (keep, _) in zip(opacity, cuts, strict=True)]
+                glows = [glow for _, glow in cuts]
             if plan.alpha == "mask":
                 first = first_opaque(opacity)
                 gb = select_layers(gbs, first)
@@ -469,25 +670,36 @@ class Renderer(nn.Module):
                 depth = torch.gather(torch.stack([f.depth for f in layers]), 0,
                                      first.squeeze(1).unsqueeze(0))[0]
                 visible = _Visible(fid, depth)
-                radiance = radiance_of(gb, fid) * coverage
+                glow = None if glows is None else torch.gather(
+                    torch.stack(glows), 0, first.unsqueeze(0).expand(1, -1, 3, -1, -1))[0]
+                radiance = radiance_of(gb, fid, glow) * coverage
                 transmittance = 1 - coverage
             else:
                 colors, used = [], []
                 transmittance = torch.ones_like(opacity[0])
-                for g, f, a in zip(gbs, layers, opacity, strict=True):
+                for k, (g, f, a) in enumerate(zip(gbs, layers, opacity, strict=True)):
                     if not bool((transmittance * a > 0).any()):
                         break  # everything behind is hidden
-                    colors.append(radiance_of(g, f.face_id))
+                    colors.append(radiance_of(g, f.face_id, None if glows is None else glows[k]))
                     used.append(a)
                     transmittance = transmittance * (1 - a)
                 radiance, transmittance = composite_over(colors, used)
                 gb = select_layers(gbs, first_opaque(opacity))
+        if plan.ssr:  # replace the environment's specular where the mirror rays hit
+            radiance = self._reflect(plan, gb, radiance, coverage, view, proj, eye, lights,
+                                     environment)
         if plan.background == "environment":
             rays = view_rays(view, proj, plan.resolution).to(radiance.dtype)
             background = environment.background(rays)
+        elif plan.background.startswith("image"):
+            background = fit_background(self.background_image.to(radiance), plan.resolution,
+                                        self.background_fit, self.background)
         else:
             background = self.background.to(radiance).view(1, 3, 1, 1)
         image = radiance + transmittance * background
+        if plan.fog:
+            image = self._apply_fog(plan, image, gb, view, proj, eye, lights, groups, scene,
+                                    face_ranges, b)
         if plan.alpha != "none":
             alpha = 1 - transmittance
         else:
@@ -502,6 +714,48 @@ class Renderer(nn.Module):
             image, alpha = F.avg_pool2d(image, s), F.avg_pool2d(alpha, s)
             outputs = outputs.downsample(s)
         return RenderOutput(image=image, alpha=alpha, gbuffer=outputs.as_dict(), plan=plan)
+
+    def _reflect(self, plan: RenderPlan, gb: GBuffer, radiance: torch.Tensor,
+                 coverage: torch.Tensor, view: torch.Tensor, proj: torch.Tensor,
+                 eye: torch.Tensor, lights: Lights | None,
+                 environment: Environment | None) -> torch.Tensor:
+        """Screen-space reflections of the shaded surfaces ``gb`` (radiance times
+        ``coverage``): the split-sum weight and the environment specular already in the
+        image (:func:`~torchraster.post.ssr.environment_specular`) go to the SSR module,
+        which swaps one for the other where its rays hit."""
+        dt = radiance.dtype
+        b = radiance.shape[0]
+        n = safe_normalize(gb.normal.to(dt), dim=1)
+        v = safe_normalize(eye.to(dt)[:, :, None, None] - gb.position.to(dt), dim=1)
+        rough, metal = gb.roughness.to(dt), gb.metallic.to(dt)
+        weight = specular_weight((n * v).sum(1, keepdim=True), gb.albedo.to(dt), metal, rough,
+                                 multiscatter=plan.multiscatter)
+        ambient = None
+        if lights is not None and lights.ambient is not None:
+            ambient = lights.ambient.to(device=radiance.device, dtype=dt).expand(b, 9, 3)
+        fallback = environment_specular(n, v, rough, weight, gb.ao,
+                                        environment if plan.ibl else None, ambient)
+        normal_view = torch.einsum("bij,bjhw->bihw", view[:, :3, :3].to(dt), n)
+        depth = torch.where(gb.mask > 0, gb.depth.to(dt), torch.zeros_like(rough))
+        cov = coverage.to(dt)
+        return self.ssr(radiance, depth, normal_view, rough, metal, gb.albedo.to(dt),
+                        projection=proj.to(dt), fallback=fallback * cov, weight=weight * cov)
+
+    def _apply_fog(self, plan: RenderPlan, image: torch.Tensor, gb: GBuffer,
+                   view: torch.Tensor, proj: torch.Tensor, eye: torch.Tensor,
+                   lights: Lights | None, groups: list[ShadowMaps] | None, scene: RenderScene,
+                   face_ranges: torch.Tensor | None, b: int) -> torch.Tensor:
+        """The fog pass (:func:`~torchraster.shading.volumetric.apply_fog`) over the
+        visible surfaces of ``gb`` (the first opaque layer) and the background."""
+        rays = view_rays(view, proj, plan.resolution).to(image.dtype)
+        eye = eye.to(image.dtype).expand(b, 3)
+        covered = gb.mask > 0
+        dist = (gb.position.to(image.dtype) - eye[:, :, None, None]).norm(dim=1, keepdim=True)
+        dist = torch.where(covered, dist, torch.full_like(dist, float("inf")))
+        lit = plan.shading in LIT_MODELS
+        bounds = _caster_bounds(scene.positions, scene.faces, face_ranges, b).to(image.dtype)
+        return apply_fog(image, dist, eye, rays, self.fog, lights if lit else None,
+                         (groups or ()) if lit else (), view, bounds)
 
     def _shadow_maps(self, plan: RenderPlan, scene: RenderScene, view: torch.Tensor,
                      proj: torch.Tensor, lights: Lights, b: int,
@@ -534,7 +788,7 @@ class Renderer(nn.Module):
                                 bounds)
             g.lights = list(ids)
             groups.append(g)
-        render_shadow_maps(groups, positions, faces, face_ranges)
+        render_shadow_maps(groups, positions, faces, face_ranges, cache=self.shadow_cache)
         return groups, lights
 
     def _shadow_hook(self, groups: list[ShadowMaps], lights: Lights, scene: RenderScene,
@@ -578,8 +832,11 @@ class Renderer(nn.Module):
         ibl = None
         if plan.ibl:
             def ibl(n, v, a, m, r):
-                return shade_ibl(n, v, a, m, r, None, environment)
-        return shade(gb, camera_position=eye, lights=lights, ibl=ibl, visibility=visibility)
+                return shade_ibl(n, v, a, m, r, None, environment,
+                                 multiscatter=plan.multiscatter)
+        return shade(gb, camera_position=eye, lights=lights, model=self.model, ibl=ibl,
+                     multiscatter=plan.multiscatter,
+                     visibility=visibility)
 
 
 @dataclass

@@ -1,4 +1,5 @@
-"""Texture sampling: mip pyramids, nearest / bilinear / trilinear filtering, wrap / clamp /
+"""Texture sampling: mip pyramids, nearest / bilinear / trilinear / anisotropic filtering
+(the last in :mod:`torchraster.anisotropic`), wrap / clamp /
 mirror addressing, lat-long (equirectangular) and cube environment lookups.
 
 Conventions (fixed for the project):
@@ -22,8 +23,8 @@ it is what ``glGenerateMipmap`` does on common drivers, it keeps the mean of eve
 levels exactly, and it matches the one-texel footprint the OpenGL lod formula assumes;
 kornia's ``pyrdown`` (Gaussian 5x5, ``pyramid="gaussian"``) blurs about one level more:
 on the steep checkerboard plane of ``scripts/bench_quality.py`` trilinear filtering has
-6.6 % mean error with the box pyramid and 17 % with pyrdown, against an 8x8-supersampled
-reference (docs/benchmarks.md, section quality-texture).
+6.2 % mean error with the box pyramid and 17 % with pyrdown (anisotropic 16x: 0.8 %),
+against the exact pixel-area average (docs/benchmarks.md, section quality-texture).
 """
 
 from __future__ import annotations
@@ -58,9 +59,9 @@ __all__ = [
     "latlong_to_cube",
 ]
 
-Filter = Literal["nearest", "bilinear", "trilinear"]
+Filter = Literal["nearest", "bilinear", "trilinear", "anisotropic"]
 Address = Literal["wrap", "clamp", "mirror"]
-FILTERS = ("nearest", "bilinear", "trilinear")
+FILTERS = ("nearest", "bilinear", "trilinear", "anisotropic")
 ADDRESS_MODES = ("wrap", "clamp", "mirror")
 
 #: Floor on the squared screen-space footprint ``rho**2`` (texels per pixel, squared) before
@@ -147,7 +148,8 @@ def compute_lod(
 # ----------------------------------------------------------------------------- sampling
 
 
-def _address_pair(address: str | Sequence[str]) -> tuple[str, str]:
+def address_pair(address: str | Sequence[str]) -> tuple[str, str]:
+    """``(mode_u, mode_v)`` from one address mode or a pair of them (checked)."""
     pair = (address, address) if isinstance(address, str) else tuple(address)
     if len(pair) != 2 or any(a not in ADDRESS_MODES for a in pair):
         raise ValueError(
@@ -156,8 +158,9 @@ def _address_pair(address: str | Sequence[str]) -> tuple[str, str]:
     return pair  # type: ignore[return-value]
 
 
-def _remap(t: torch.Tensor, mode: str) -> torch.Tensor:
-    """Map a texture coordinate into [0, 1] for the address mode (derivative +-1 or 0)."""
+def remap_address(t: torch.Tensor, mode: str) -> torch.Tensor:
+    """Map a texture coordinate (any shape) into [0, 1] for the address mode ``"wrap"``,
+    ``"mirror"`` or ``"clamp"`` (derivative +-1 or 0); same shape."""
     if mode == "wrap":
         return t - torch.floor(t)
     if mode == "mirror":  # triangle wave of period 2 (GL_MIRRORED_REPEAT)
@@ -207,8 +210,8 @@ def sample_padded(
     h, w = padded.shape[-2] - 2, padded.shape[-1] - 2
     b = u.shape[0]
     tex = padded
-    x = _remap(u, address[0]) * w - 0.5  # continuous texel index, centres at integers
-    y = (1.0 - _remap(v, address[1])) * h - 0.5
+    x = remap_address(u, address[0]) * w - 0.5  # continuous texel index, centres at integers
+    y = (1.0 - remap_address(v, address[1])) * h - 0.5
     grid = torch.stack((2.0 * (x + 1.0) / (w + 1) - 1.0, 2.0 * (y + 1.0) / (h + 1) - 1.0), -1)
     if tex.shape[0] == 1 and b > 1:
         flat = grid.reshape(1, b * grid.shape[1], grid.shape[2], 2)
@@ -225,6 +228,7 @@ def sample_levels(
     v: torch.Tensor,
     lod: torch.Tensor,
     address: tuple[str, str],
+    padded: Sequence[torch.Tensor] | None = None,
 ) -> torch.Tensor:
     """Trilinear: hat-weighted sum of bilinear samples of the levels around ``lod``.
 
@@ -233,6 +237,8 @@ def sample_levels(
         u, v: ``(B, H, W)`` texture coordinates.
         lod: ``(B, 1, H, W)`` level of detail, clamped to ``[0, L - 1]``.
         address: ``(mode_u, mode_v)``.
+        padded: the levels already padded by :func:`pad_texture` for ``address`` (e.g.
+            kept by :class:`MipTexture`), or None to pad the levels used here.
 
     Returns:
         ``(B, C, H, W)``. Each level is sampled only at the pixels that give it a
@@ -258,12 +264,13 @@ def sample_levels(
         used = (wk > 0).any(0)
         if not bool(used.any()):
             continue
+        tex = padded[k] if padded is not None else pad_texture(levels[k], *address)
         if bool(used.all()):
-            s = _sample_level(levels[k], uf, vf, "bilinear", address)[:, :, 0]  # (B', C, P)
+            s = sample_padded(tex, uf, vf, "bilinear", address)[:, :, 0]  # (B', C, P)
             out = out + s * wk[:, None]
             continue
         idx = used.nonzero().squeeze(1)
-        s = _sample_level(levels[k], uf[..., idx], vf[..., idx], "bilinear", address)[:, :, 0]
+        s = sample_padded(tex, uf[..., idx], vf[..., idx], "bilinear", address)[:, :, 0]
         out = out.index_add(2, idx, s * wk[:, None, idx])
     if shared:
         return out.reshape(c, b, h, w).transpose(0, 1)
@@ -285,9 +292,13 @@ def _check_uv_inputs(
         )
     if filter not in FILTERS:
         raise ValueError(f"filter: expected one of {FILTERS}, got {filter!r}")
-    if filter == "trilinear" and lod is None:
+    if filter == "anisotropic" and lod is not None:
+        raise ValueError("lod: not used by filter='anisotropic' (its lod comes from duv_dx "
+                         "and duv_dy; shift it with lod_bias)")
+    if filter in ("trilinear", "anisotropic") and lod is None:
         if duv_dx is None or duv_dy is None:
-            raise ValueError("duv_dx, duv_dy: required for filter='trilinear' (or give lod)")
+            raise ValueError(f"duv_dx, duv_dy: required for filter={filter!r}"
+                             + (" (or give lod)" if filter == "trilinear" else ""))
         for name, d in (("duv_dx", duv_dx), ("duv_dy", duv_dy)):
             check_tensor(name, d, ("B", 2, "H", "W"), floating=True, finite=True)
             if d.shape != uv.shape:
@@ -312,19 +323,28 @@ def _sample(
     duv_dy: torch.Tensor | None,
     lod: torch.Tensor | None,
     lod_bias: float | torch.Tensor,
+    padded: Sequence[torch.Tensor] | None = None,
+    max_anisotropy: int = 16,
 ) -> torch.Tensor:
     levels = [t.to(uv.dtype) for t in levels]
+    padded = None if padded is None else [t.to(uv.dtype) for t in padded]
     u, v = uv[:, 0], uv[:, 1]
-    if filter == "nearest":
-        return _sample_level(levels[0], u, v, "nearest", address)
-    if filter == "bilinear":
-        return _sample_level(levels[0], u, v, "bilinear", address)
+    if filter in ("nearest", "bilinear"):
+        if padded is None:
+            return _sample_level(levels[0], u, v, filter, address)
+        return sample_padded(padded[0], u, v, filter, address)
+    if filter == "anisotropic":
+        from .anisotropic import sample_anisotropic  # same layer; it imports this module
+
+        assert duv_dx is not None and duv_dy is not None
+        return sample_anisotropic(levels, uv, duv_dx, duv_dy, address, max_anisotropy,
+                                  lod_bias, padded)
     if lod is None:
         assert duv_dx is not None and duv_dy is not None
         lod = compute_lod(duv_dx, duv_dy, tuple(levels[0].shape[-2:]), lod_bias)
     else:
         lod = lod + lod_bias
-    return sample_levels(levels, u, v, lod, address)
+    return sample_levels(levels, u, v, lod, address, padded)
 
 
 def sample_texture(
@@ -338,6 +358,7 @@ def sample_texture(
     lod: torch.Tensor | None = None,
     lod_bias: float | torch.Tensor = 0.0,
     pyramid: Literal["box", "gaussian"] = "box",
+    max_anisotropy: int = 16,
 ) -> torch.Tensor:
     """Sample a texture at per-pixel UVs.
 
@@ -347,23 +368,29 @@ def sample_texture(
     Args:
         texture: ``(B, C, Ht, Wt)`` or ``(1, C, Ht, Wt)`` (shared by the batch), float.
         uv: ``(B, 2, H, W)`` texture coordinates (channel 0 = u, 1 = v; v up).
-        filter: ``"nearest"``, ``"bilinear"`` (level 0) or ``"trilinear"`` (mip-mapped;
-            needs ``duv_dx`` and ``duv_dy``, or an explicit ``lod``).
+        filter: ``"nearest"``, ``"bilinear"`` (level 0), ``"trilinear"`` (mip-mapped;
+            needs ``duv_dx`` and ``duv_dy``, or an explicit ``lod``) or ``"anisotropic"``
+            (up to ``max_anisotropy`` trilinear probes along the footprint's major axis,
+            :mod:`torchraster.anisotropic`; needs ``duv_dx`` and ``duv_dy``).
         address: ``"wrap"`` (repeat), ``"clamp"`` (to edge) or ``"mirror"`` (mirrored
             repeat), or a ``(u_mode, v_mode)`` pair.
         duv_dx, duv_dy: ``(B, 2, H, W)`` UV derivatives along screen x and y (UV / pixel).
         lod: ``(B, 1, H, W)`` explicit level of detail (overrides the derivatives).
         lod_bias: added to the level of detail.
         pyramid: mip filter for trilinear, ``"box"`` or ``"gaussian"`` (kornia pyrdown).
+        max_anisotropy: largest number of probes a pixel for ``"anisotropic"`` (1 to 64;
+            GPUs offer 2 to 16), ignored by the other filters.
 
     Returns:
         ``(B, C, H, W)`` filtered texels in the texture's units, dtype of ``uv``.
     """
     check_tensor("texture", texture, ("B", "C", "Ht", "Wt"), floating=True)
     _check_uv_inputs(tuple(texture.shape), uv, filter, duv_dx, duv_dy, lod)
-    pair = _address_pair(address)
-    levels = build_mip_pyramid(texture, pyramid=pyramid) if filter == "trilinear" else [texture]
-    return _sample(levels, uv, filter, pair, duv_dx, duv_dy, lod, lod_bias)
+    pair = address_pair(address)
+    mipmapped = filter in ("trilinear", "anisotropic")
+    levels = build_mip_pyramid(texture, pyramid=pyramid) if mipmapped else [texture]
+    return _sample(levels, uv, filter, pair, duv_dx, duv_dy, lod, lod_bias,
+                   max_anisotropy=max_anisotropy)
 
 
 class MipTexture:
@@ -387,8 +414,12 @@ class MipTexture:
         pyramid: Literal["box", "gaussian"] = "box",
     ) -> None:
         check_tensor("texture", texture, ("B", "C", "Ht", "Wt"), floating=True)
-        self.address = _address_pair(address)
-        self.levels: list[torch.Tensor] = build_mip_pyramid(texture, pyramid=pyramid)
+        self.address = address_pair(address)
+        # Each level is padded once for the default address mode (sampling reads padded
+        # levels); the levels are views into the padded tensors, so memory is not doubled.
+        self._padded = [pad_texture(t, *self.address)
+                        for t in build_mip_pyramid(texture, pyramid=pyramid)]
+        self.levels: list[torch.Tensor] = [p[..., 1:-1, 1:-1] for p in self._padded]
 
     @property
     def num_levels(self) -> int:
@@ -405,11 +436,14 @@ class MipTexture:
         address: Address | tuple[Address, Address] | None = None,
         lod: torch.Tensor | None = None,
         lod_bias: float | torch.Tensor = 0.0,
+        max_anisotropy: int = 16,
     ) -> torch.Tensor:
         """Sample at ``uv`` ``(B, 2, H, W)`` -> ``(B, C, H, W)``; see :func:`sample_texture`."""
         _check_uv_inputs(tuple(self.levels[0].shape), uv, filter, duv_dx, duv_dy, lod)
-        pair = self.address if address is None else _address_pair(address)
-        return _sample(self.levels, uv, filter, pair, duv_dx, duv_dy, lod, lod_bias)
+        pair = self.address if address is None else address_pair(address)
+        padded = self._padded if pair == self.address else None
+        return _sample(self.levels, uv, filter, pair, duv_dx, duv_dy, lod, lod_bias, padded,
+                       max_anisotropy)
 
 
 # ------------------------------------------------------------------ environment lookups
@@ -493,6 +527,9 @@ def sample_latlong(
     """
     levels = [env] if isinstance(env, torch.Tensor) else list(env)
     check_tensor("env", levels[0], ("B", "C", "He", "We"), floating=True)
+    if filter == "anisotropic":
+        raise ValueError("filter: expected 'nearest', 'bilinear' or 'trilinear' in "
+                         "sample_latlong, got 'anisotropic' (it needs UV derivatives)")
     uv = latlong_uv(direction)
     if filter == "trilinear" and lod is None:
         raise ValueError("lod: required for filter='trilinear' in sample_latlong")

@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .._validate import check_tensor
-from ..numerics import compute_dtype
+from ..numerics import compute_dtype, smoothstep
 
 #: Depth substituted for empty pixels (+inf/<=0) before bilinear depth lookups (inf * 0
 #: weights would give NaN); any sample is in front of it, and its range weight is ~0.
@@ -77,10 +77,6 @@ def projection_to_intrinsics(projection: torch.Tensor, resolution: tuple[int, in
     cx = (1.0 - p[:, 0, 2]) * (w / 2.0) - 0.5
     cy = (1.0 + p[:, 1, 2]) * (h / 2.0) - 0.5
     return torch.stack([fx, fy, cx, cy], dim=-1)
-
-
-def _smoothstep01(t: torch.Tensor) -> torch.Tensor:
-    return t * t * (3.0 - 2.0 * t)
 
 
 def ssao(
@@ -146,7 +142,7 @@ def ssao(
         align_corners=False,
     ).reshape(b, samples, h, w)
     occ = ((ds - bias - scene) / softness).clamp(0.0, 1.0)
-    rng = _smoothstep01(radius / (d - scene).abs().clamp(min=radius))
+    rng = smoothstep(radius / (d - scene).abs().clamp(min=radius))
     # samples behind the camera or projecting off-screen (no depth known there) count as open
     onscreen = (sj >= -0.5) & (sj <= w - 0.5) & (si >= -0.5) & (si <= h - 0.5)
     counted = front & onscreen

@@ -182,16 +182,17 @@ class Records:
 
 
 def block_sizes(tile: int) -> list[int]:
-    """Block edge lengths for small triangles: 1, 2, 3, 4, 6, 8, 12, ... up to ``tile``.
+    """Block edge lengths for small triangles: 1, 2, 4, 8, ... (powers of two) and ``tile``.
 
-    Steps of about 1.5x waste fewer candidates than powers of two (about 1.2x instead of 1.4x
-    per axis on average) at the price of more, smaller launches.
+    Finer steps (1.5x) waste fewer candidates (about 1.2x instead of 1.4x per axis) but
+    double the number of block shapes, hence of launches; at 256² - 512², batch 1, the
+    launches cost more (measured 25-35 % slower, scripts/bench_raster.py rows).
     """
     sizes, s = {tile}, 1
     while s < tile:
-        sizes |= {s, s + s // 2}
+        sizes.add(s)
         s *= 2
-    return sorted(v for v in sizes if v <= tile)
+    return sorted(sizes)
 
 
 def _block_shapes(box: torch.Tensor, resolution: tuple[int, int], tile: int):
@@ -334,30 +335,46 @@ def _sub_blocks(setup: TriangleSetup, tri: torch.Tensor, x0: torch.Tensor, y0: t
                 th: int, tw: int, max_candidates: int) -> Iterator[Records]:
     """Split (triangle, tile) pairs into SUB_BLOCK-square blocks, drop the blocks outside an
     edge, and yield the blocks proven fully covered as ``full`` records (no per-pixel edge
-    test, no search for covered centres) and the others as ordinary records."""
+    test, no search for covered centres) and the others as ordinary records.
+
+    The blocks are classified as an (R, S) broadcast over the R pairs' edge coefficients (S
+    blocks a tile), without a per-block copy of them. Halving the partial blocks again (a
+    quadtree down to 4x4) tests 2.3x fewer centres for 5k faces at 1024² but was measured
+    slower overall: the extra launches and smaller records cost more than the tests saved.
+    """
     s = SUB_BLOCK
     oy, ox = torch.meshgrid(torch.arange(0, th, s, device=tri.device),
                             torch.arange(0, tw, s, device=tri.device), indexing="ij")
-    n_sub = ox.numel()
     step = max(1, max_candidates // (th * tw))
+    n_sub = ox.numel()
     for c in range(0, tri.numel(), step):
-        t = tri[c:c + step].repeat_interleave(n_sub)
-        bx = (x0[c:c + step, None] + ox.reshape(1, -1)).reshape(-1)
-        by = (y0[c:c + step, None] + oy.reshape(1, -1)).reshape(-1)
-        coef = setup.coef.index_select(1, t)
+        t = tri[c:c + step]
+        coef = setup.coef[:EDGE_MIN.stop].index_select(1, t)  # (12, R), once per pair
+        # (R, S) sub-block origins, as floats (exact: pixel coordinates are < 2**24)
+        bx = (x0[c:c + step, None] + ox.reshape(1, -1)).to(coef.dtype)
+        by = (y0[c:c + step, None] + oy.reshape(1, -1)).to(coef.dtype)
         full, inside = _classify_blocks(coef, bx, by, s)
         for flag in (True, False):
-            sel = (full if flag else inside & ~full).nonzero().squeeze(1)
-            per = max(1, max_candidates // (s * s))
-            for k in range(0, sel.numel(), per):
-                ids = sel[k:k + per]
-                yield Records(s, s, t.index_select(0, ids), bx.index_select(0, ids),
-                              by.index_select(0, ids), full=flag)
+            k = (full if flag else inside & ~full).view(-1).nonzero().squeeze(1)
+            yield from _records(s, t.index_select(0, k // n_sub),
+                                bx.view(-1).index_select(0, k).long(),
+                                by.view(-1).index_select(0, k).long(), flag, max_candidates)
+
+
+def _records(size: int, tri: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, full: bool,
+             max_candidates: int) -> Iterator[Records]:
+    """Square ``size`` records of (R,) triangles and origins, in chunks of at most
+    ``max_candidates`` centres."""
+    per = max(1, max_candidates // (size * size))
+    for k in range(0, tri.numel(), per):
+        yield Records(size, size, tri[k:k + per], x0[k:k + per], y0[k:k + per], full=full)
 
 
 def _classify_blocks(coef: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, size: int
                      ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(full (R,), may_overlap (R,)) of size x size blocks of pixel centres at (x0, y0).
+    """(full (R, S), may_overlap (R, S)) of size x size blocks of pixel centres at (x0, y0)
+    (each (R, S) float, integer-valued: S blocks of each of R triangles; ``coef`` (>= 12,
+    R)).
 
     Full is exact: each edge function is evaluated with :func:`block_edge`'s float ops at
     the block's corner where it is smallest (float rounding is monotone, so ``A x + (B y +
@@ -365,12 +382,21 @@ def _classify_blocks(coef: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, siz
     corner passes the edge's tie threshold, every centre of the block does. may_overlap is
     the conservative test of :func:`_tile_may_overlap`.
     """
-    ea, eb, ec = coef[EDGE_A], coef[EDGE_B], coef[EDGE_C]  # (3, R) each
-    px = torch.where(ea > 0, x0, x0 + (size - 1)).to(coef.dtype)
-    py = torch.where(eb > 0, y0, y0 + (size - 1)).to(coef.dtype)
-    worst = (eb * py + ec) + ea * px
-    full = (worst >= coef[EDGE_MIN]).all(dim=0)
-    return full, _tile_may_overlap(coef, x0, y0, size, size)
+    full = may = None
+    last = float(size - 1)
+    for e in range(3):
+        ea, eb = coef[EDGE_A][e][:, None], coef[EDGE_B][e][:, None]
+        ec, emin = coef[EDGE_C][e][:, None], coef[EDGE_MIN][e][:, None]
+        shift_x, shift_y = (ea <= 0).to(coef.dtype) * last, (eb <= 0).to(coef.dtype) * last
+        worst = (eb * (y0 + shift_y) + ec) + ea * (x0 + shift_x)
+        ok = worst >= emin
+        # The largest E over the block's corner centres, conservative by 1e-3 px (see
+        # _tile_may_overlap): the corner opposite to the worst one.
+        best = ea * (x0 + (last - shift_x)) + eb * (y0 + (last - shift_y)) + ec
+        hit = best >= -1e-3 * (ea.abs() + eb.abs())
+        full = ok if full is None else full.logical_and_(ok)
+        may = hit if may is None else may.logical_and_(hit)
+    return full, may
 
 
 def _tile_may_overlap(coef: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, th: int,

@@ -5,15 +5,25 @@ DFG LUT); Filament, "Physically Based Rendering in Filament", section 5.3 (image
 lights: roughness -> lod mapping, f90, multiple-scattering energy compensation after
 Fdez-Aguera 2019); Ramamoorthi & Hanrahan 2001, "An Efficient Representation for Irradiance
 Environment Maps" (9 SH coefficients); Colbert & Krivanek 2007, "GPU-Based Importance
-Sampling" (filtered importance sampling: sample lod from the sample's solid angle).
+Sampling" and Krivanek & Colbert 2008, GPU Gems 3 ch. 20 (filtered importance sampling:
+sample lod from the sample's solid angle); Lagarde & de Rousiers 2014, "Moving Frostbite to
+PBR" (the specular dominant direction).
 
 Outgoing radiance at a surface point with normal n, view direction v (towards the eye),
 reflection r = reflect(-v, n)::
 
     E    = f0 * A(n.v, rough) + f90 * B(n.v, rough)           # single-scatter DFG
-    spec = prefiltered(r, rough) * E * (1 + f0 (1 / (A + B) - 1))   # energy compensation
-    diff = (1 - metallic) albedo * irradiance(n) / pi * (1 - E)
+    ms   = 1 + f0 (1 / (A + B) - 1)                           # multiple scattering
+    spec = prefiltered(dominant(r, n, rough), rough) * E * ms   # Lagarde 2014
+    diff = (1 - metallic) albedo * irradiance(n) / pi * (1 - E * ms)
     out  = ao * (diff + spec)
+
+(``dominant`` = ``normalize(n + s (r - n))``, ``s = (1 - a)(sqrt(1 - a) + a)``,
+``a = rough**2``: the lobe's peak moves from r towards n as it widens. ``ms`` and the
+diffuse reduction are the energy convention of :mod:`torchraster.shading.energy`, the same
+for punctual and ambient light; both are off with ``multiscatter=False``. With
+``specular="importance"`` the prefiltered lookup is replaced by :func:`specular_importance`,
+the lobe's mean radiance by per-pixel filtered importance sampling.)
 
 Diffuse irradiance comes from a brute-force irradiance map (default, :func:`irradiance_map`)
 or from 9 SH coefficients (:func:`sh_project`, :func:`irradiance_sh`); scripts/bench_quality.py
@@ -39,6 +49,7 @@ from torch.utils.checkpoint import checkpoint
 from torchraster._validate import check_radiance, check_tensor
 from torchraster.numerics import diffuse_color, dot, safe_normalize
 from torchraster.shading.brdf import MIN_ROUGHNESS, d_ggx, v_smith_ggx_correlated
+from torchraster.shading.energy import MIN_DFG_ALBEDO, energy_terms
 from torchraster.shading.lights import (  # one SH basis for ambient lights and IBL
     SH_C0,
     SH_C1,
@@ -79,21 +90,25 @@ __all__ = [
     "prefilter_specular",
     "dfg_lut",
     "lookup_dfg",
+    "specular_importance",
+    "dominant_direction",
+    "SPECULAR_MODES",
     "shade_ibl",
 ]
+
+#: IBL specular methods: the split-sum prefiltered chain (one lookup a pixel) or per-pixel
+#: filtered importance sampling of the GGX lobe (:func:`specular_importance`).
+SPECULAR_MODES: tuple[str, ...] = ("split_sum", "importance")
 
 #: Floor on n.v (Filament clamps NoV to 1e-4): keeps the DFG lookup and the reflection
 #: well defined at grazing and back-facing views.
 MIN_N_DOT_V: float = 1e-4
 
-#: Floor on the directional albedo A + B in the energy compensation ``1 / (A + B)``. The
-#: smallest value in the table is ~0.4 (rough, grazing), so this only guards hostile LUTs.
-MIN_DFG_ALBEDO: float = 1e-4
-
 #: Extra lod for filtered importance sampling. Colbert & Krivanek 2007 use +1 (one level
 #: blurrier than the sample's footprint, to hide noise); measured against a brute-force lobe
 #: on venice_sunset_1k that bias costs accuracy (r = 0.24, 32 samples: 4.8 % mean error
-#: with +1, 1.3 % with 0), so none is added.
+#: with +1, 1.3 % with 0), so none is added. The same holds per pixel
+#: (:func:`specular_importance`, n != v, 16 samples, r = 0.55: 10 % with 0, 18 % with +1).
 FIS_LOD_BIAS: float = 0.0
 
 #: (output texel, source texel) pairs whose weights are formed at once by the brute-force
@@ -580,6 +595,122 @@ def _cached(name: str, radiance: torch.Tensor, knobs: tuple, build) -> list[torc
     return _ENV_CACHE.get((name, content_key(radiance), knobs), build)
 
 
+def dominant_direction(n: torch.Tensor, r: torch.Tensor, roughness: torch.Tensor
+                       ) -> torch.Tensor:
+    """Where the split sum reads the prefiltered chain: the GGX lobe's dominant direction,
+    the reflection vector bent towards the normal as the lobe widens (Lagarde & de Rousiers
+    2014, "Moving Frostbite to PBR", listing 22): ``normalize(n + s (r - n))``,
+    ``s = (1 - a)(sqrt(1 - a) + a)``, ``a = roughness**2``. On a sun-lit map it brings the
+    split sum's mean error at roughness 0.8 from 35 % to 9 % (docs/benchmarks.md,
+    ibl-specular).
+
+    Args:
+        n, r: ``(B, 3, H, W)`` unit normal and reflection vector ``reflect(-v, n)``.
+        roughness: ``(B, 1, H, W)`` perceptual roughness in [0, 1].
+
+    Returns:
+        ``(B, 3, H, W)`` unit directions (r at roughness 0); finite gradients everywhere.
+    """
+    alpha = roughness.clamp(0.0, 1.0) ** 2
+    bend = (1.0 - alpha) * (torch.sqrt((1.0 - alpha).clamp_min(1e-12)) + alpha)
+    return safe_normalize(n + bend * (r - n))
+
+
+# ------------------------------------------------- per-pixel filtered importance sampling
+
+
+def _pixel_rotation(shape: tuple[int, ...], device: torch.device, dtype: torch.dtype
+                    ) -> torch.Tensor:
+    """``(B, 1, H, W)`` deterministic per-pixel offsets in [0, 1): interleaved gradient
+    noise (Jimenez 2014) of the pixel coordinates, the Cranley-Patterson rotation of the
+    sample azimuths (decorrelates neighbouring pixels; no state, no RNG)."""
+    b, _, h, w = shape
+    y = torch.arange(h, device=device, dtype=torch.float64).view(h, 1)
+    x = torch.arange(w, device=device, dtype=torch.float64).view(1, w)
+    ign = torch.frac(52.9829189 * torch.frac(0.06711056 * x + 0.00583715 * y))
+    return ign.to(dtype).expand(b, 1, h, w)
+
+
+def specular_importance(
+    levels: list[torch.Tensor],
+    n: torch.Tensor,
+    v: torch.Tensor,
+    f0: torch.Tensor,
+    f90: torch.Tensor | float,
+    roughness: torch.Tensor,
+    samples: int,
+    padded: list[torch.Tensor] | None = None,
+) -> torch.Tensor:
+    """Mean environment radiance under the single-scattering GGX lobe, per pixel, by
+    filtered importance sampling (Krivanek & Colbert 2008, GPU Gems 3 ch. 20).
+
+    ``samples`` half vectors per pixel from GGX (Hammersley points, azimuth rotated per
+    pixel), ``l = reflect(-v, h)`` with pdf ``D (n.h) / (4 v.h)``; each sample reads the
+    mip chain at ``lod = 0.5 log2(Omega_s / Omega_p) + FIS_LOD_BIAS`` (``Omega_s = 1 / (N
+    pdf)``, ``Omega_p`` the equator texel of level 0) and is weighted by BRDF x cosine / pdf
+    ``= 4 V F (n.l)(v.h) / (n.h)`` (height-correlated Smith V, Schlick F). Returns the
+    weighted mean ``sum L w / sum w`` (a ratio estimator): multiplied by the lobe's albedo
+    ``f0 A + f90 B`` it converges to ``int L f (n.l) dl`` as N grows, and is exact for a
+    uniform environment at any N. Unlike the split sum it keeps the lobe's dependence on
+    the view (stretched at grazing angles, no n = v = r assumption).
+
+    Args:
+        levels: box mip chain of the lat-long radiance, ``(1 or B, 3, h_k, w_k)``.
+        n, v: ``(B, 3, H, W)`` unit normal and direction to the eye, in env space.
+        f0: ``(B, 3 or 1, H, W)``; f90: ``(B, 1, H, W)`` or a float (Schlick Fresnel).
+        roughness: ``(B, 1, H, W)`` perceptual roughness (clamped to [MIN_ROUGHNESS, 1]).
+        samples: N >= 1.
+        padded: the levels padded by ``pad_texture(level, "wrap", "clamp")`` (padded once
+            for all samples), or None.
+
+    Returns:
+        ``(B, 3, H, W)`` radiance; differentiable w.r.t. the levels and every input.
+    """
+    check_tensor("n", n, ("B", 3, "H", "W"), floating=True)
+    b, _, h, w = n.shape
+    check_tensor("v", v, (b, 3, h, w), floating=True)
+    check_tensor("roughness", roughness, (b, 1, h, w), floating=True)
+    if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
+        raise ValueError(f"samples: expected an int >= 1, got {samples!r}")
+    env = levels[0]
+    omega_p = (2.0 * math.pi / env.shape[-1]) * (math.pi / env.shape[-2])
+    rough = roughness.clamp(MIN_ROUGHNESS, 1.0)
+    a = rough * rough
+    a2 = a * a
+    t, bt = _onb(n)
+    n_dot_v = dot(n, v).clamp(MIN_N_DOT_V, 1.0)
+    rot = _pixel_rotation(n.shape, n.device, n.dtype)
+    if padded is None:
+        padded = [pad_texture(lv, "wrap", "clamp") for lv in levels]
+    xi = hammersley(samples, dtype=n.dtype).to(n.device)
+    acc = n.new_zeros(b, 3, h, w)
+    wsum = n.new_zeros(b, 3, h, w)
+    for s in range(samples):
+        phi = 2.0 * math.pi * torch.frac(xi[s, 0] + rot)
+        u = xi[s, 1]
+        den = 1.0 + (a2 - 1.0) * u
+        cos_h = torch.sqrt((1.0 - u) / den)  # GGX inversion (Karis); u < 1
+        sin_h = torch.sqrt((a2 * u / den).clamp_min(1e-30))  # u = 0: finite gradient
+        hv = t * (sin_h * torch.cos(phi)) + bt * (sin_h * torch.sin(phi)) + n * cos_h
+        v_dot_h = dot(v, hv)
+        l = 2.0 * v_dot_h * hv - v
+        n_dot_l = dot(n, l)
+        ok = (n_dot_l > 0) & (v_dot_h > 0)
+        pdf = d_ggx(cos_h, rough) * cos_h / (4.0 * v_dot_h.clamp_min(MIN_N_DOT_V))
+        lod = 0.5 * torch.log2(1.0 / (samples * pdf.clamp_min(1e-30) * omega_p)) + FIS_LOD_BIAS
+        uv = latlong_uv(l)
+        rad = sample_levels(levels, uv[:, 0], uv[:, 1], lod, ("wrap", "clamp"), padded)
+        vis = v_smith_ggx_correlated(n_dot_v, n_dot_l, rough)
+        fc = (1.0 - v_dot_h.clamp(0.0, 1.0)) ** 5
+        fres = f0 + (f90 - f0) * fc
+        wgt = torch.where(ok, 4.0 * vis * n_dot_l.clamp_min(0.0) * v_dot_h.clamp_min(0.0)
+                          / cos_h.clamp_min(MIN_N_DOT_V), 0.0) * fres
+        acc = acc + rad * wgt
+        wsum = wsum + wgt.expand_as(wsum)
+    ok = wsum > 1e-12
+    return torch.where(ok, acc / torch.where(ok, wsum, 1.0), 0.0)
+
+
 # -------------------------------------------------------------------------- environment
 
 
@@ -605,6 +736,12 @@ class Environment:
             the fastest setting within 1 % mean error (0.96 %) of a brute-force GGX lobe on
             venice_sunset_1k in scripts/bench_quality.py (docs/benchmarks.md,
             section quality-ibl).
+        specular: how :func:`shade_ibl` integrates the specular lobe (stored as
+            :attr:`specular_mode`): ``"split_sum"`` (default: the prefiltered chain, one
+            lookup a pixel) or ``"importance"`` (:func:`specular_importance`:
+            ``importance_samples`` filtered samples of the GGX lobe a pixel, closer to
+            the true integral at high roughness; docs/benchmarks.md, ibl-specular).
+        importance_samples: samples a pixel for ``specular="importance"`` (>= 1).
 
     The SH coefficients, the irradiance map and the specular chain are computed on first
     use and kept; without gradients they are also shared by every Environment of the same
@@ -627,6 +764,8 @@ class Environment:
         diffuse: str = "map",
         irradiance_height: int = 16,
         irradiance_source_height: int | None = 32,
+        specular: str = "split_sum",
+        importance_samples: int = 16,
     ) -> None:
         if isinstance(radiance, torch.Tensor) and radiance.dim() == 3:
             radiance = radiance[None]
@@ -657,6 +796,16 @@ class Environment:
         self.diffuse = diffuse
         self.irradiance_height = irradiance_height
         self.irradiance_source_height = irradiance_source_height
+        if specular not in SPECULAR_MODES:
+            raise ValueError(f"specular: expected one of {SPECULAR_MODES}, got {specular!r}")
+        if isinstance(importance_samples, bool) or not isinstance(importance_samples, int) or (
+                importance_samples < 1):
+            raise ValueError(f"importance_samples: expected an int >= 1, got "
+                             f"{importance_samples!r}")
+        self.specular_mode = specular
+        self.importance_samples = importance_samples
+        self._mips: list[torch.Tensor] | None = None
+        self._mips_padded: list[torch.Tensor] | None = None
         self._irr: torch.Tensor | None = None
         self._sh: torch.Tensor | None = None
         self._spec: list[torch.Tensor] | None = None
@@ -718,6 +867,32 @@ class Environment:
                                               self.to_env(n)))
         return self._scale(irradiance_sh(self.sh.to(n.dtype), self.to_env(n)))
 
+    @property
+    def mip_chain(self) -> list[torch.Tensor]:
+        """Box mip pyramid of the radiance (env space, without intensity), read by
+        :meth:`specular_lobe`."""
+        if self._mips is None:
+            self._mips = _cached("mips", self.radiance, (), lambda: build_mip_pyramid(
+                self.radiance))
+        return self._mips
+
+    def specular_lobe(self, n: torch.Tensor, v: torch.Tensor, f0: torch.Tensor,
+                      f90: torch.Tensor | float, roughness: torch.Tensor,
+                      samples: int | None = None) -> torch.Tensor:
+        """Mean radiance under the GGX lobe of world normals / view directions ``n``,
+        ``v`` ``(B, 3, H, W)`` by :func:`specular_importance` with ``samples`` (default
+        :attr:`importance_samples`) -> ``(B, 3, H, W)``."""
+        check_tensor("n", n, ("B", 3, "H", "W"), floating=True)
+        chain = [lv.to(n.dtype) for lv in self.mip_chain]
+        if chain[0].shape[0] not in (1, n.shape[0]):
+            raise ValueError(f"n: batch {n.shape[0]} does not match the environment's")
+        if self._mips_padded is None or self._mips_padded[0].dtype != n.dtype:
+            self._mips_padded = [pad_texture(lv, "wrap", "clamp") for lv in chain]
+        rad = specular_importance(chain, self.to_env(n), self.to_env(v), f0, f90, roughness,
+                                  self.importance_samples if samples is None else samples,
+                                  self._mips_padded)
+        return self._scale(rad)
+
     def specular(self, r: torch.Tensor, roughness: torch.Tensor) -> torch.Tensor:
         """Prefiltered radiance along reflection directions ``r`` ``(B, 3, H, W)`` for
         perceptual ``roughness`` ``(B, 1, H, W)``: trilinear between the two nearest
@@ -745,6 +920,8 @@ def shade_ibl(
     f0_dielectric: float = 0.04,
     lut_size: int = 16,
     lut_samples: int = 32,
+    specular: str | None = None,
+    importance_samples: int | None = None,
 ) -> torch.Tensor:
     """Image-based lighting of a metallic-roughness surface (split sum, see module doc).
 
@@ -757,13 +934,23 @@ def shade_ibl(
         ao: ``(B, 1, H, W)`` ambient occlusion in [0, 1] applied to diffuse and specular
             IBL (glTF: occlusion of indirect light), or None.
         env: the :class:`Environment`.
-        multiscatter: Fdez-Aguera / Filament energy compensation of the specular lobe.
+        multiscatter: multiple-scattering compensation of the specular lobe and the
+            diffuse reduced by the specular's directional albedo (Fdez-Aguera 2019; the
+            convention of :mod:`torchraster.shading.energy`, shared with punctual and
+            ambient light). False: the single-scattering split sum of the BRDF of
+            :func:`~torchraster.shading.brdf.cook_torrance` (no diffuse reduction).
         f0_dielectric: reflectance at normal incidence for metallic = 0. f90 follows
             Filament, ``saturate(50 * 0.33 * f0)``, so f0 = 0 turns specular off: when f0 is
             0 at every pixel (and needs no gradient) the specular term is skipped and the
             prefiltered chain is never built.
         lut_size, lut_samples: knobs of :func:`dfg_lut`; defaults (16, 32): the fastest
             within 1 % mean error in scripts/bench_quality.py.
+        specular: ``"split_sum"`` (prefiltered chain along the lobe's dominant direction,
+            the reflection vector bent towards the normal with roughness) or
+            ``"importance"`` (the lobe's mean radiance by :meth:`Environment.specular_lobe`
+            times the same ``E``); None: ``env.specular_mode``.
+        importance_samples: samples a pixel for ``"importance"``; None:
+            ``env.importance_samples``.
 
     Returns:
         ``(B, 3, H, W)`` outgoing radiance (same units as the environment).
@@ -780,6 +967,14 @@ def shade_ibl(
         check_tensor("ao", ao, (b, 1, h, w), floating=True)
     if not isinstance(env, Environment):
         raise TypeError(f"env: expected an Environment, got {type(env).__name__}")
+    mode = env.specular_mode if specular is None else specular
+    if mode not in SPECULAR_MODES:
+        raise ValueError(f"specular: expected one of {SPECULAR_MODES} or None, got {mode!r}")
+    if importance_samples is not None and (isinstance(importance_samples, bool) or not
+                                           isinstance(importance_samples, int) or
+                                           importance_samples < 1):
+        raise ValueError(f"importance_samples: expected an int >= 1 or None, got "
+                         f"{importance_samples!r}")
 
     n = safe_normalize(normal)
     v = safe_normalize(view_dir)
@@ -794,11 +989,17 @@ def shade_ibl(
     lut = dfg_lut(lut_size, lut_samples, device=normal.device, dtype=normal.dtype)
     a, bias = lookup_dfg(lut, n_dot_v, rough)
     e_ss = f0 * a + f90 * bias
-    diffuse = diffuse_color(albedo, metal) * env.irradiance(n) * (1.0 / math.pi) * (1.0 - e_ss)
+    diffuse = diffuse_color(albedo, metal) * env.irradiance(n) * (1.0 / math.pi)
+    if multiscatter:  # the energy convention of every light type (shading/energy.py)
+        ms, kd_scale = energy_terms(f0, n_dot_v, rough, lut, f90)
+        diffuse = diffuse * kd_scale
     if not f0.requires_grad and not bool((f0 != 0).any()):
         return diffuse * ao if ao is not None else diffuse  # f0 = f90 = 0: no specular at all
-    spec = env.specular(r, rough) * e_ss
+    if mode == "importance":
+        spec = env.specular_lobe(n, v, f0, f90, rough, importance_samples) * e_ss
+    else:
+        spec = env.specular(dominant_direction(n, r, rough), rough) * e_ss
     if multiscatter:
-        spec = spec * (1.0 + f0 * (1.0 / (a + bias).clamp_min(MIN_DFG_ALBEDO) - 1.0))
+        spec = spec * ms
     out = diffuse + spec
     return out * ao if ao is not None else out

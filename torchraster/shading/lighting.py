@@ -14,6 +14,10 @@
   constant ambient up to the table's accuracy; applied whatever the shading model.
 * Image-based lighting is a hook: pass ``ibl=callable`` (e.g. a closure over
   ``torchraster.shading.ibl.shade_ibl`` and an environment) or None.
+* Energy (``multiscatter=True``, default): the Cook-Torrance specular of punctual and
+  ambient light is scaled for multiple scattering and the diffuse gets what the specular
+  does not reflect, the convention of :mod:`torchraster.shading.energy` (also used by
+  ``shade_ibl``).
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from torchraster.numerics import (
     specular_f0,
 )
 from torchraster.shading.brdf import DIELECTRIC_F0, MIN_COS, MIN_ROUGHNESS, NORMALIZE_EPS
+from torchraster.shading.energy import ENERGY_LUT_SAMPLES, ENERGY_LUT_SIZE, energy_terms
 from torchraster.shading.ibl import dfg_lut, lookup_dfg
 from torchraster.shading.lights import (
     MIN_LIGHT_DISTANCE,
@@ -153,6 +158,7 @@ def cook_torrance_lights(
     metallic: torch.Tensor,
     roughness: torch.Tensor,
     visibility: torch.Tensor | None = None,
+    multiscatter: bool = True,
 ) -> torch.Tensor:
     """Sum over the L lights of batch item ``item`` of the Cook-Torrance BRDF times the
     cosine and the illuminance, at M packed pixels of that item: the fused form of ``_direct`` with
@@ -177,6 +183,8 @@ def cook_torrance_lights(
             the eye.
         albedo: ``(3, M)``; metallic, roughness: ``(1, M)``.
         visibility: ``(L, M)`` fraction of each light reaching each pixel, or None.
+        multiscatter: energy compensation (specular x ``spec_scale``, diffuse x
+            ``diffuse_scale`` of :func:`~torchraster.shading.energy.energy_terms`).
 
     Returns:
         ``(3, M)`` outgoing radiance.
@@ -189,6 +197,11 @@ def cook_torrance_lights(
     lam_v = torch.sqrt(torch.addcmul(a2, nv * nv, 1.0 - a2))
     f0 = DIELECTRIC_F0 * (1.0 - metallic) + albedo * metallic
     kd = (1.0 - metallic) * albedo
+    ms = None
+    if multiscatter:  # Kulla-Conty / Fdez-Aguera energy terms (shading/energy.py)
+        lut = dfg_lut(ENERGY_LUT_SIZE, ENERGY_LUT_SAMPLES, device=f0.device, dtype=f0.dtype)
+        ms, kd_scale = energy_terms(f0, nv, r, lut)
+        kd = kd * kd_scale
     color = lights.color[item] * lights.intensity[item][:, None]  # (L, 3)
     if kind is DirectionalLights:
         l = -safe_normalize(lights.direction[item], dim=-1)  # (L, 3)
@@ -239,6 +252,8 @@ def cook_torrance_lights(
     c_t = color.T  # (3, L)
     # D and V carry 1 / pi and 1 / 2 (folded in here), and kd its 1 / pi
     spec = f0 * (c_t @ s1) + (1.0 - f0) * (c_t @ s2)
+    if ms is not None:
+        spec = spec * ms
     return (kd * (c_t @ w) + 0.5 * spec) * (1.0 / math.pi)
 
 
@@ -286,7 +301,7 @@ def _pack_items(covered, dt, position, normal, albedo, metallic, roughness, came
     return items
 
 
-def _fused_direct(kind, lights, packed, vis, use_ckpt, acc):
+def _fused_direct(kind, lights, packed, vis, use_ckpt, acc, multiscatter=True):
     """Add one chunk of lights of ``kind`` to the packed radiance ``acc`` (a list of
     ``(3, M)`` per batch item, None until lit) through :func:`cook_torrance_lights`, in
     chunks of about :data:`PIXEL_LIGHT_CHUNK` pixel-lights, each recomputed in backward
@@ -310,9 +325,10 @@ def _fused_direct(kind, lights, packed, vis, use_ckpt, acc):
             args.append(None if vis_i is None else vis_i[:, s0:s0 + per])
             if use_ckpt:
                 rad = checkpoint(cook_torrance_lights, kind, lights, item, *args,
-                                 use_reentrant=False)
+                                 multiscatter=multiscatter, use_reentrant=False)
             else:
-                rad = cook_torrance_lights(kind, lights, item, *args)
+                rad = cook_torrance_lights(kind, lights, item, *args,
+                                           multiscatter=multiscatter)
             if inplace:
                 acc[item][:, s0:s0 + per] += rad
             else:
@@ -352,6 +368,7 @@ def shade(
     visibility: VisibilityHook | None = None,
     light_chunk: int | None = None,
     checkpoint_chunks: bool | None = None,
+    multiscatter: bool = True,
 ) -> torch.Tensor:
     """Deferred lighting of a G-buffer.
 
@@ -378,6 +395,11 @@ def shade(
             ``1`` is the plain Python loop over lights.
         checkpoint_chunks: recompute chunks in backward (default: when autograd is on
             and there is more than one chunk).
+        multiscatter: multiple-scattering energy compensation of the Cook-Torrance
+            specular and the matching diffuse reduction, for punctual and ambient light
+            (:mod:`torchraster.shading.energy`; the ``ibl`` hook applies its own, e.g.
+            ``shade_ibl(multiscatter=...)``). False: the single-scattering BRDF of
+            :func:`~torchraster.shading.brdf.cook_torrance`. Other shading models ignore it.
 
     Returns:
         ``(B, 3, H, W)`` linear HDR radiance, 0 where ``mask`` is 0, in the G-buffer's
@@ -473,7 +495,7 @@ def shade(
                              (b, chunk.count, 1, h, w), floating=True)
                 vis = vis.to(dt)
             if fused:
-                _fused_direct(kind, chunk, packed, vis, use_ckpt, acc)
+                _fused_direct(kind, chunk, packed, vis, use_ckpt, acc, multiscatter)
                 continue
             surface = Surface(albedo=base[:, None], metallic=metal[:, None],
                               roughness=rough[:, None])
@@ -493,9 +515,13 @@ def shade(
         e_n = sh_irradiance(lights.ambient, n).clamp_min(0.0)
         e_r = sh_irradiance(lights.ambient, r).clamp_min(0.0)
         f0 = specular_f0(base, metal)
-        indirect = (diffuse_color(base, metal) * e_n + env_brdf(f0, rough, n_dot_v) * e_r) / (
-            torch.pi
-        )
+        kd, spec = diffuse_color(base, metal) * e_n, env_brdf(f0, rough, n_dot_v) * e_r
+        if multiscatter:  # the same energy terms as punctual lights (shading/energy.py)
+            lut = dfg_lut(ENERGY_LUT_SIZE, ENERGY_LUT_SAMPLES, device=dev, dtype=dt)
+            ms, kd_scale = energy_terms(f0, n_dot_v.clamp(MIN_COS, 1.0),
+                                        rough.clamp(MIN_ROUGHNESS, 1.0), lut)
+            kd, spec = kd * kd_scale, spec * ms
+        indirect = (kd + spec) / torch.pi
     if ibl is not None:
         env = ibl(n, v, base, metal, rough)
         check_tensor("ibl(...) result", env, (b, 3, h, w), floating=True)

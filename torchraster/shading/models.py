@@ -22,6 +22,8 @@ artistic models, kept cheap and finite-gradient everywhere.
 
 from __future__ import annotations
 
+import functools
+import inspect
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -43,6 +45,9 @@ TOON_SPECULAR_THRESHOLD: float = 0.5
 
 #: Brightness of the toon highlight relative to a fully lit white diffuse surface.
 TOON_SPECULAR: float = 0.6
+
+#: Default ``rim_width`` of the toon model: the rim covers ``n.v < TOON_RIM_WIDTH``.
+TOON_RIM_WIDTH: float = 0.3
 
 
 @dataclass(frozen=True)
@@ -118,24 +123,47 @@ def half_lambert(n: torch.Tensor, v: torch.Tensor, l: torch.Tensor, surface: Sur
     return surface.albedo / math.pi * wrap.clamp(0.0, 1.0) ** 2
 
 
-def toon(n: torch.Tensor, v: torch.Tensor, l: torch.Tensor, surface: Surface):
-    """Cel shading: diffuse quantised into TOON_BANDS bands plus a hard specular spot.
+def toon(n: torch.Tensor, v: torch.Tensor, l: torch.Tensor, surface: Surface, *,
+         bands: int = TOON_BANDS, rim: float = 0.0, rim_width: float = TOON_RIM_WIDTH):
+    """Cel shading: diffuse quantised into ``bands`` bands, a hard specular spot and an
+    optional rim light.
 
-    ``diffuse = kd / pi * ceil(TOON_BANDS * max(n.l, 0)) / TOON_BANDS``; the highlight
+    ``diffuse = kd / pi * ceil(bands * max(n.l, 0)) / bands``; the highlight
     ``TOON_SPECULAR * mix(1, albedo, metallic) / pi`` where the Blinn-Phong lobe of the same
     roughness exceeds TOON_SPECULAR_THRESHOLD of its peak (a white spot on dielectrics, a
-    tinted one on metals). Piecewise constant in the angles: gradients flow to the colours
-    only.
+    tinted one on metals); the rim ``rim / pi`` (white) on the lit side (n.l > 0) where the
+    surface turns away from the viewer, ``n.v < rim_width`` (the classic toon rim, e.g.
+    Roystan's toon shader, thresholded). Piecewise constant in the angles: gradients flow
+    to the colours only.
+
+    Args:
+        n, v, l, surface: as every model (module docstring).
+        bands: number of diffuse levels above black, an int >= 1.
+        rim: brightness of the rim relative to a fully lit white diffuse surface, >= 0
+            (0: no rim).
+        rim_width: the rim covers ``n.v < rim_width``, in [0, 1].
+
+    Returns:
+        ``BRDF-like factor * cosine``, shaped like the broadcast of the inputs.
     """
+    if isinstance(bands, bool) or not isinstance(bands, int) or bands < 1:
+        raise ValueError(f"bands: expected an int >= 1, got {bands!r}")
+    if not (isinstance(rim, (int, float)) and math.isfinite(rim) and rim >= 0):
+        raise ValueError(f"rim: expected a finite float >= 0, got {rim!r}")
+    if not (isinstance(rim_width, (int, float)) and 0.0 <= rim_width <= 1.0):
+        raise ValueError(f"rim_width: expected a float in [0, 1], got {rim_width!r}")
     n_dot_l = dot(n, l).clamp(0.0, 1.0)
-    bands = torch.ceil(n_dot_l * TOON_BANDS) / TOON_BANDS
+    level = torch.ceil(n_dot_l * bands) / bands
     _, n_dot_h, s = _blinn_phong_lobe(n, v, l, surface.roughness)
     # (n.h)^s > t  <=>  n.h > t^(1/s): the threshold angle, free of overflow for large s.
     cutoff = math.log(TOON_SPECULAR_THRESHOLD) / s
     hit = (n_dot_h > torch.exp(cutoff)) & (n_dot_l > 0)
     tint = 1.0 + (surface.albedo - 1.0) * surface.metallic
     spec = torch.where(hit, TOON_SPECULAR * tint, 0.0)
-    return (diffuse_color(surface.albedo, surface.metallic) * bands + spec) / math.pi
+    out = diffuse_color(surface.albedo, surface.metallic) * level + spec
+    if rim > 0:
+        out = out + torch.where((dot(n, v) < rim_width) & (n_dot_l > 0), float(rim), 0.0)
+    return out / math.pi
 
 
 #: Built-in shading models by name.
@@ -147,13 +175,47 @@ MODELS: dict[str, ShadingModel] = {
 }
 
 
-def get_model(model: str | ShadingModel) -> ShadingModel:
-    """Return the shading model named ``model`` (a key of :data:`MODELS`) or the callable."""
-    if callable(model):
+def get_model(model: str | ShadingModel, **options: object) -> ShadingModel:
+    """Return the shading model named ``model`` (a key of :data:`MODELS`) or the callable.
+
+    Args:
+        model: a name of :data:`MODELS` or a callable ``model(n, v, l, surface)``.
+        options: keyword parameters of a named model (e.g. ``toon``'s ``bands``, ``rim``,
+            ``rim_width``), bound here; a name the model does not take raises a ValueError
+            naming it and the model's parameters.
+    """
+    if callable(model) and not options:
         return model
     if isinstance(model, str) and model in MODELS:
-        return MODELS[model]
+        fn = MODELS[model]
+        if not options:
+            return fn
+        params = model_options(model)
+        unknown = sorted(set(options) - set(params))
+        if unknown:
+            raise ValueError(f"shading options {unknown}: not parameters of model {model!r}; "
+                             f"it takes {sorted(params) or 'none'}")
+        fn(*_probe(), **options)  # validate the values now (errors name the option)
+        return functools.partial(fn, **options)
+    if callable(model):
+        raise ValueError("options: only named models take options; bind them into the "
+                         f"callable instead, got {sorted(options)}")
     raise ValueError(
         f"model: expected one of {sorted(MODELS)} or a callable "
         f"model(n, v, l, surface) -> radiance factor, got {model!r}"
     )
+
+
+def model_options(model: str) -> dict[str, object]:
+    """``{parameter: default}`` of the keyword options of the named model (``{}`` for models
+    without options), e.g. ``{"bands": 3, "rim": 0.0, "rim_width": 0.3}`` for ``"toon"``."""
+    fn = get_model(model)
+    return {p.name: p.default for p in inspect.signature(fn).parameters.values()
+            if p.kind is inspect.Parameter.KEYWORD_ONLY}
+
+
+def _probe() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, Surface]:
+    """One tiny valid input of a model (to check option values up front)."""
+    z = torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1)
+    one = torch.ones(1, 1, 1, 1)
+    return z, z, z, Surface(albedo=torch.ones(1, 3, 1, 1), metallic=one * 0, roughness=one)

@@ -517,9 +517,83 @@ def local_views(kind: str, position: torch.Tensor, direction: torch.Tensor | Non
 # ------------------------------------------------------------------------------- render
 
 
+class ShadowMapCache:
+    """Rendered depth maps kept across calls, keyed by content (static casters and lights:
+    a moving camera re-renders no map).
+
+    A view's key is its map size, its 4x4 world -> clip matrix and the casters it draws
+    (its batch item's positions, the faces, its face range), compared by value, so any
+    change (also an in-place edit) renders anew. Views of one call with equal keys (e.g.
+    a batch of cameras sharing a sun whose map is fitted to the casters) are rendered once.
+    Only the non-differentiable depth pass is cached (not VSM maps with autograd on).
+
+    Args:
+        max_bytes: bound on the cached maps (least recently used dropped first).
+    """
+
+    def __init__(self, max_bytes: int = 64 * 2**20) -> None:
+        self.max_bytes = int(max_bytes)
+        self._entries: list[tuple] = []  # (size, matrix, positions, faces, range, depth)
+        self.renders = 0  # views rendered (not found in the cache), for tests and benches
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    @staticmethod
+    def _same(a: tuple, b: tuple) -> bool:
+        return (a[0] == b[0] and a[4] == b[4] and torch.equal(a[1], b[1])
+                and (a[2] is b[2] or torch.equal(a[2], b[2]))
+                and (a[3] is b[3] or torch.equal(a[3], b[3])))
+
+    def render(self, pos: torch.Tensor, faces: torch.Tensor, face_ranges: torch.Tensor | None,
+               items: torch.Tensor, mats: torch.Tensor, size: int, per_call: int
+               ) -> torch.Tensor:
+        """NDC depth ``(N, S, S)`` of the N views ``mats`` ``(N, 4, 4)`` of batch items
+        ``items`` ``(N,)`` (positions ``(B or 1, V, 3)``), as :func:`rasterize_depth`."""
+        pos, mats = pos.detach(), mats.detach()
+        shared = pos.shape[0] == 1
+        pos_keys = [pos[0].clone()] if shared else [p.clone() for p in pos]
+        faces_key = faces.clone()
+        keys, found = [], []
+        for j, it in enumerate(items.tolist()):
+            rng = None if face_ranges is None else tuple(face_ranges[it].tolist())
+            key = (size, mats[j].clone(), pos_keys[0 if shared else it], faces_key, rng)
+            hit = next((k for k, e in enumerate(self._entries) if self._same(e, key)), None)
+            if hit is None:  # an equal view earlier in this call
+                hit = next((-1 - i for i, k in enumerate(keys[:j]) if found[i] is None
+                            and self._same(k, key)), None)
+            keys.append(key)
+            found.append(hit)
+        todo = [j for j, f in enumerate(found) if f is None]
+        fresh: dict[int, torch.Tensor] = {}
+        for k in range(0, len(todo), per_call):
+            idx = torch.tensor(todo[k:k + per_call], device=items.device)
+            src = pos.index_select(0, items.index_select(0, idx)) if not shared else pos.expand(
+                idx.numel(), -1, -1)
+            homo = torch.cat([src, torch.ones_like(src[..., :1])], -1)
+            clip = homo @ mats.index_select(0, idx).to(homo.dtype).transpose(1, 2)
+            ranges = None if face_ranges is None else face_ranges.index_select(
+                0, items.index_select(0, idx))
+            depth = rasterize_depth(clip, faces, (size, size), face_ranges=ranges)
+            fresh.update(zip(todo[k:k + per_call], depth, strict=True))
+        self.renders += len(todo)
+        out = [fresh[j] if f is None else fresh[-1 - f] if f < 0 else self._entries[f][5]
+               for j, f in enumerate(found)]
+        hits = list(dict.fromkeys(f for f in found if f is not None and f >= 0))
+        self._entries = ([e for k, e in enumerate(self._entries) if k not in hits]
+                         + [self._entries[k] for k in hits]  # most recently used last
+                         + [keys[j] + (fresh[j],) for j in todo])
+        nbytes = sum(e[5].numel() * e[5].element_size() for e in self._entries)
+        while nbytes > self.max_bytes and len(self._entries) > 1:
+            e = self._entries.pop(0)
+            nbytes -= e[5].numel() * e[5].element_size()
+        return torch.stack(out) if out else pos.new_empty(0, size, size)
+
+
 def render_shadow_maps(groups: Sequence[ShadowMaps], positions: torch.Tensor,
                        faces: torch.Tensor, face_ranges: torch.Tensor | None = None,
-                       memory_budget: int = SHADOW_MEMORY_BUDGET) -> None:
+                       memory_budget: int = SHADOW_MEMORY_BUDGET,
+                       cache: ShadowMapCache | None = None) -> None:
     """Render the depth of every view of ``groups`` (in place: sets ``group.depth``).
 
     All views of one map size go through one :func:`rasterize_depth` call (chunked to
@@ -531,6 +605,8 @@ def render_shadow_maps(groups: Sequence[ShadowMaps], positions: torch.Tensor,
         positions: ``(B, V, 3)`` or ``(V, 3)`` world positions; faces: ``(F, 3)`` the
             shadow casters; face_ranges: ``(B, 2)`` as in ``rasterize`` or None.
         memory_budget: bytes of shadow maps (and per-pixel buffers) rendered per call.
+        cache: a :class:`ShadowMapCache`: maps of views seen before (same casters, same
+            matrix) are reused, and equal views of this call rendered once.
     """
     by_size: dict[tuple[int, bool], list[ShadowMaps]] = {}
     for g in groups:
@@ -553,7 +629,10 @@ def render_shadow_maps(groups: Sequence[ShadowMaps], positions: torch.Tensor,
         per_view = size * size * (16 if not grad else 400)
         per_call = max(1, memory_budget // per_view)
         ndc = []
-        for k in range(0, all_m.shape[0], per_call):
+        if cache is not None and not grad and all_m.shape[0]:
+            ndc.append(cache.render(pos, faces, face_ranges, items, all_m, size,
+                                    per_call).to(positions.dtype))
+        for k in range(0, all_m.shape[0] if not ndc else 0, per_call):
             sl = slice(k, k + per_call)
             src = pos.index_select(0, items[sl]) if pos.shape[0] > 1 else pos.expand(
                 all_m[sl].shape[0], -1, -1)
@@ -721,6 +800,32 @@ def _pcf(maps: torch.Tensor, sel: torch.Tensor, tx: torch.Tensor, ty: torch.Tens
     return out.mean(-1)
 
 
+#: Maps of at most this many texels are padded by PCF lookups (:func:`_pcf_padded`).
+PAD_MAP_ELEMENTS: int = 2**24
+
+
+def _pcf_padded(maps: torch.Tensor, sel: torch.Tensor, tx: torch.Tensor, ty: torch.Tensor,
+                z_ref: torch.Tensor, size: int) -> torch.Tensor:
+    """:func:`_pcf` (bilinear) with one index computation per tap instead of four: the
+    maps are padded by 2 texels of ``+inf`` (no caster: lit, like the outside of a map),
+    and the clamped top-left corner (in [-2, S]) reaches the other three at +1, +row."""
+    sp = size + 4
+    padded = torch.nn.functional.pad(maps.view(-1, size, size), (2, 2, 2, 2),
+                                     value=float("inf")).reshape(-1)
+    x0f, y0f = torch.floor(tx.detach()), torch.floor(ty.detach())
+    fx, fy = tx - x0f, ty - y0f
+    x0 = x0f.long().clamp(-2, size) + 2
+    y0 = y0f.long().clamp(-2, size) + 2
+    s = sel.view(*sel.shape, *([1] * (tx.dim() - sel.dim())))
+    base = ((s * sp + y0) * sp + x0).flatten()
+    out = 0
+    for off, wgt in ((0, (1 - fx) * (1 - fy)), (1, fx * (1 - fy)), (sp, (1 - fx) * fy),
+                     (sp + 1, fx * fy)):
+        d = padded.index_select(0, base + off).view(tx.shape)
+        out = out + wgt * (z_ref <= d).to(tx.dtype)
+    return out.mean(-1)
+
+
 def _bilinear(maps: torch.Tensor, sel: torch.Tensor, tx: torch.Tensor, ty: torch.Tensor,
               size: int) -> torch.Tensor:
     """Bilinear samples ``(P, Ls, C)`` of C-channel maps ``(M, C, S*S)`` (clamped edges)."""
@@ -771,8 +876,9 @@ def _visibility_of_view(g: ShadowMaps, p, n, item, view_idx) -> torch.Tensor:
         radius = _pcss_radius(g, maps, sel, tx, ty, z_ref, world_texel, taps, ramp)
     # each tap against the receiver plane's depth there (+1 texel: the bilinear footprint)
     z_taps = z_ref[..., None] - ramp[..., None] * (taps.norm(dim=-1) * radius[..., None] + 1)
-    vis = _pcf(maps, sel, tx[..., None] + taps[:, 0] * radius[..., None],
-               ty[..., None] + taps[:, 1] * radius[..., None], z_taps, size)
+    pcf = _pcf_padded if maps.numel() <= PAD_MAP_ELEMENTS else _pcf
+    vis = pcf(maps, sel, tx[..., None] + taps[:, 0] * radius[..., None],
+              ty[..., None] + taps[:, 1] * radius[..., None], z_taps, size)
     return torch.where(valid, vis, torch.ones_like(vis))
 
 
@@ -870,5 +976,6 @@ def check_face_flags(name: str, flags: torch.Tensor | None, n_faces: int) -> Non
         raise TypeError(f"{name}: expected an (F,) bool tensor, got {flags.dtype}")
 
 
-__all__ = ["FILTERS", "ShadowMaps", "ShadowSettings", "cascade_splits", "directional_views",
-           "local_views", "render_shadow_maps", "shadow_visibility", "tap_pattern"]
+__all__ = ["FILTERS", "ShadowMapCache", "ShadowMaps", "ShadowSettings", "cascade_splits",
+           "directional_views", "local_views", "render_shadow_maps", "shadow_visibility",
+           "tap_pattern"]

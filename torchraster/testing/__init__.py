@@ -9,6 +9,10 @@ implementations.
   interpolation, float64 camera matrices and hostile random scenes;
 * :mod:`torchraster.testing.reference_brdf`: GGX (Walter 2007), height-correlated Smith
   (Heitz 2014) and a hemisphere quadrature of any BRDF;
+* :mod:`torchraster.testing.reference_texture`: the exact box-filtered checkerboard on a
+  steep plane (closed-form integration along lines), for texture filtering;
+* :mod:`torchraster.testing.reference_fog`: a brute-force single-scattering fog march with
+  numerically integrated transmittance, and the Henyey-Greenstein phase written out;
 * :mod:`torchraster.testing.llvmpipe`: Mesa's llvmpipe (OpenGL on the CPU through moderngl)
   behind the same clip-space contract; optional, ``available()`` says whether it runs here.
 

@@ -1,0 +1,163 @@
+"""Screen-space reflections: error against march steps and resolution, and time per frame.
+
+Scene: a textured quad standing above a mirror floor (metallic 1, roughness 0), unlit, so
+the reflected radiance is view-independent. Reference: the quad rendered with the camera
+mirrored through the floor plane (what a perfect mirror shows). Error: mean over the floor
+pixels the reference covers of max_c |SSR reflection - reference| (a miss counts as its
+whole reference colour, so lost hits and wrong colours both count); "hit" is the fraction
+of those pixels SSR reports a hit for (they are at most 1 px off at silhouettes and miss
+where the reflected rays leave the frame). Time: the SSR module alone (median), and as a
+fraction of the G-buffer render.
+
+    python scripts/bench_ssr.py            # table -> docs/benchmarks.md, section ssr
+    python scripts/bench_ssr.py --picture  # docs/images/ssr_floor.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchmd import markdown_table, median_time, update_section  # noqa: E402
+
+import torchraster as tr  # noqa: E402
+from torchraster.camera import look_at, perspective  # noqa: E402
+from torchraster.post import SSR, EncodeSRGB, ToneMap  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+CHANNELS = ["depth", "normal", "roughness", "metallic", "albedo", "mask"]
+
+
+def quad_scene(mirror_view: bool = False):
+    """Textured quad above a mirror floor (or, mirrored, the quad alone) and its camera."""
+    uu, vv = torch.meshgrid(torch.linspace(0, 1, 64), torch.linspace(0, 1, 64), indexing="xy")
+    tex = torch.stack([0.5 + 0.5 * torch.sin(19 * uu), 0.5 + 0.5 * torch.cos(13 * vv),
+                       0.2 + 0.6 * (((uu * 8).floor() + (vv * 8).floor()) % 2)])
+    quad = torch.tensor([[-0.9, 0.15, 0.0], [0.9, 0.15, 0.0], [0.9, 1.2, 0.0], [-0.9, 1.2, 0.0]])
+    floor = torch.tensor([[-8.0, 0, -8], [-8, 0, 8], [8, 0, 8], [8, 0, -8]])
+    faces = torch.tensor([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    uvs = torch.tensor([[0.0, 0], [1, 0], [1, 1], [0, 1]] + [[0.0, 0]] * 4)
+    normals = torch.tensor([[0.0, 0, 1]] * 4 + [[0.0, 1, 0]] * 4)
+    mats = [tr.Material(base_color_texture=tex, roughness_factor=0.9),
+            tr.Material(metallic_factor=1.0, roughness_factor=0.0)]
+    positions, fm = torch.cat([quad, floor]), torch.tensor([0, 0, 1, 1])
+    view = look_at([0.3, 0.9, 3.0], [0.0, 0.35, 0.0])
+    if mirror_view:  # reflect the world through y = 0 before the camera; flip the winding
+        positions, faces, uvs, normals = quad, faces[:2, [0, 2, 1]], uvs[:4], normals[:4]
+        mats, fm = mats[:1], fm[:2]
+        view = view @ torch.diag(torch.tensor([1.0, -1.0, 1.0, 1.0]))
+    scene = tr.RenderScene(positions=positions, faces=faces, uvs=uvs, normals=normals,
+                           materials=mats, face_material=fm)
+    return scene, view, perspective(50.0, 1.0, 0.1, 50.0)
+
+
+def measure(res: int, steps_list: list[int], repeats: int) -> list[list[object]]:
+    scene, view, proj = quad_scene()
+    renderer = tr.Renderer(res, shading="unlit")
+    t_frame = median_time(lambda: renderer(scene, view, proj, channels=CHANNELS), repeats)
+    out = renderer(scene, view, proj, channels=CHANNELS)
+    g = out.gbuffer
+    n_view = torch.einsum("ij,bjhw->bihw", view[0, :3, :3], g["normal"])
+    ref_scene, ref_view, _ = quad_scene(mirror_view=True)
+    ref = renderer(ref_scene, ref_view, proj)
+    seen = (ref.alpha[0, 0] > 0) & (g["roughness"][0, 0] == 0)
+    rows = []
+    for steps in steps_list:
+        ssr = SSR(max_steps=steps, edge_fade=0.0)
+
+        def run(ssr=ssr):  # noqa: ANN001, ANN202
+            return ssr(out.image, g["depth"], n_view, g["roughness"], g["metallic"],
+                       g["albedo"], projection=proj, return_maps=True)
+
+        t = median_time(run, repeats)
+        maps = run()
+        refl = torch.where(maps.confidence > 0, maps.reflection, torch.zeros_like(
+            maps.reflection))
+        err = (refl[0] - ref.image[0]).abs().amax(0)[seen]
+        hit = float((maps.confidence[0, 0] > 0)[seen].float().mean())
+        rows.append([f"{res}x{res}", steps, float(err.mean()), f"{100 * hit:.1f} %",
+                     t * 1000, f"{100 * t / t_frame:.0f} %"])
+        print(rows[-1], flush=True)
+    return rows
+
+
+def picture(path: Path) -> None:
+    """The spot cow on a glossy metal floor under the venice sky, without / with SSR."""
+    spot = tr.load_spot()
+    rot = torch.tensor([[0.0, 0, -1], [0, 1, 0], [1, 0, 0]])  # side on to the camera
+    p = spot.positions @ rot.T * 0.8 + torch.tensor([0.0, 0.59, 0.0])
+    s = 30.0
+    fp = torch.tensor([[-s, 0, -s], [-s, 0, s], [s, 0, s], [s, 0, -s]])
+    scene = tr.RenderScene(
+        positions=torch.cat([p, fp]),
+        faces=torch.cat([spot.faces, torch.tensor([[0, 1, 2], [0, 2, 3]]) + p.shape[0]]),
+        normals=torch.cat([spot.normals @ rot.T, torch.tensor([[0.0, 1, 0]]).expand(4, 3)]),
+        uvs=torch.cat([spot.uvs, torch.zeros(4, 2)]),
+        face_material=torch.cat([torch.zeros(spot.faces.shape[0], dtype=torch.int64),
+                                 torch.ones(2, dtype=torch.int64)]),
+        materials=[spot.material, tr.Material(base_color_factor=[0.35, 0.33, 0.3, 1.0],
+                                              metallic_factor=1.0, roughness_factor=0.12)])
+    env = tr.Environment(tr.read_hdr(ROOT / "torchraster/assets/envmaps/venice_sunset_256.hdr"),
+                         yaw=2.0)
+    lights = tr.Lights(directional=tr.DirectionalLights(
+        direction=torch.tensor([[[-0.5, -1.0, -0.4]]]), color=torch.ones(1, 1, 3),
+        intensity=torch.tensor([[3.0]])))
+    view = look_at([0.2, 0.75, 3.3], [0.0, 0.42, 0.0])
+    proj = perspective(40.0, 1.0, 0.1, 100.0)
+    images = []
+    for ssr in (None, SSR()):
+        renderer = tr.Renderer(256, ssr=ssr, supersample=2)
+        images.append(renderer(scene, view, proj, lights=lights, environment=env).image)
+    img = EncodeSRGB()(ToneMap()(torch.cat(images, 3)))[0]
+    from skimage import io as skio
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    skio.imsave(path, (img.clamp(0, 1).permute(1, 2, 0).numpy() * 255).round().astype(np.uint8))
+    print(f"wrote {path} ({path.stat().st_size // 1024} KB)")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--picture", action="store_true", help="write docs/images/ssr_floor.png")
+    ap.add_argument("--quick", action="store_true", help="small sizes, no docs update")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=1,
+                    help="torch threads (1: steadier times on a shared machine)")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    if args.picture:
+        picture(ROOT / "docs" / "images" / "ssr_floor.png")
+        return
+    t0 = time.perf_counter()
+    sizes = [64, 128] if args.quick else [128, 256, 512]
+    steps = [8, 16, 32, 64, 128]
+    rows = [r for res in sizes for r in measure(res, steps, args.repeats)]
+    table = markdown_table(["resolution", "max_steps", "mean error", "hit", "SSR ms",
+                            "SSR / G-buffer frame"], rows)
+    print(table)
+    if args.quick:
+        return
+    body = (f"## Screen-space reflections: error against march steps and resolution "
+            f"({time.perf_counter() - t0:.0f} s)\n\n"
+            "A textured quad above a mirror floor; reference: the quad rendered with the "
+            "camera mirrored through the floor (`scripts/bench_ssr.py` docstring). Mean "
+            "error: max-channel |reflection - reference| over the floor pixels the "
+            "reference covers, a miss counting as the whole reference colour (texture "
+            "values in [0, 1]). The rest of the error is the 1-pixel silhouette band and "
+            "reflections leaving the frame, which SSR cannot know. SSR time as a fraction "
+            "of the unlit G-buffer render of the same frame. Load average during the run: "
+            f"{os.getloadavg()[0]:.1f} (times on a loaded machine are noisy; the error "
+            "columns are deterministic). The error stops falling at 32 steps here; the "
+            "default 64 leaves room for longer rays in deeper scenes.\n\n" + table)
+    update_section("ssr", body)
+
+
+if __name__ == "__main__":
+    main()

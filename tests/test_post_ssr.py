@@ -1,0 +1,343 @@
+"""SSR: analytic floor + wall reference, mirrored-camera render reference, composite
+contract, misses, fades, hostile inputs, gradients, renderer plan."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+import torchraster as tr
+from torchraster.camera import look_at, perspective
+from torchraster.post import SSR
+from torchraster.post.ssr import specular_weight, trace_reflections
+
+N = 48
+F_PX = N / 2 / math.tan(math.radians(30))  # 60 degree field of view
+K = torch.tensor([F_PX, F_PX, (N - 1) / 2, (N - 1) / 2], dtype=torch.float64)
+FLOOR_Y, WALL_Z = -1.0, -4.0
+
+
+def _rays() -> torch.Tensor:
+    j = torch.arange(N, dtype=torch.float64).reshape(1, N).expand(N, N)
+    i = torch.arange(N, dtype=torch.float64).reshape(N, 1).expand(N, N)
+    return torch.stack([(j - K[2]) / F_PX, -(i - K[3]) / F_PX, -torch.ones(N, N,
+                                                                          dtype=torch.float64)])
+
+
+def _pattern(p: torch.Tensor) -> torch.Tensor:
+    """Smooth colour of wall points ``(3, ...)`` -> ``(3, ...)``."""
+    return torch.stack([0.5 + 0.5 * torch.sin(3 * p[0]), 0.5 + 0.5 * torch.cos(2 * p[1]),
+                        0.3 + 0 * p[0]])
+
+
+def _floor_and_wall():
+    """Camera at the origin looking down -z; floor y = -1 (mirror), wall z = -4 (coloured,
+    rough). Returns image, depth, view-space normals, roughness, and the analytic reflection
+    of every floor pixel (the wall point hit by the mirrored ray, NaN where it misses)."""
+    ray = _rays()  # P = d * ray
+    d_floor = torch.where(ray[1] < 0, FLOOR_Y / ray[1], torch.full_like(ray[1], math.inf))
+    d_wall = torch.full_like(d_floor, -WALL_Z)
+    floor = d_floor < d_wall
+    depth = torch.where(floor, d_floor, d_wall)
+    p = depth * ray
+    normal = torch.where(floor, torch.tensor([0.0, 1, 0], dtype=torch.float64).view(3, 1, 1),
+                         torch.tensor([0.0, 0, 1], dtype=torch.float64).view(3, 1, 1))
+    image = torch.where(floor, torch.zeros(3, N, N, dtype=torch.float64), _pattern(p))
+    rough = torch.where(floor, 0.0, 0.9).to(torch.float64)[None]
+    # analytic mirror ray: reflect the view direction about +y, intersect z = -4
+    v = ray / ray.norm(dim=0, keepdim=True)
+    r = v * torch.tensor([1.0, -1, 1], dtype=torch.float64).view(3, 1, 1)
+    t = (WALL_Z - p[2]) / r[2]
+    q = p + t * r
+    ref = torch.where(floor & (q[1] / -WALL_Z < math.tan(math.radians(30)) - 2 / F_PX), _pattern(q),
+                      torch.full_like(image, math.nan))
+    return image[None], depth[None, None], normal[None], rough[None], ref[None], floor
+
+
+def test_floor_reflects_the_wall_like_the_analytic_mirror() -> None:
+    image, depth, normal, rough, ref, floor = _floor_and_wall()
+    refl, conf = trace_reflections(image, depth, normal, rough, K, edge_fade=0.0, thickness=0.5)
+    expect = torch.isfinite(ref[0, 0])
+    hit = conf[0, 0] > 0
+    assert not bool((hit & ~floor).any())  # the rough wall is not marched
+    assert int(expect.sum()) > 300
+    assert float((hit & expect).sum()) / float(expect.sum()) > 0.97
+    err = (refl[0] - ref[0]).abs().amax(0)[hit & expect]
+    # smooth pattern, bilinear reads at a refined hit: a few percent at most
+    assert float(err.median()) < 0.01 and float(err.max()) < 0.1
+
+
+def test_error_shrinks_with_refinement() -> None:
+    image, depth, normal, rough, ref, _ = _floor_and_wall()
+    errs = []
+    for steps in (0, 6):
+        refl, conf = trace_reflections(image, depth, normal, rough, K, refine_steps=steps,
+                                       edge_fade=0.0, thickness=0.5)
+        ok = (conf[0, 0] > 0) & torch.isfinite(ref[0, 0])
+        errs.append(float((refl[0] - ref[0]).abs().amax(0)[ok].mean()))
+    assert errs[1] < 0.6 * errs[0]
+
+
+def _quad_scene(mirror_view: bool = False):
+    """A textured vertical quad standing above a mirror floor (y = 0), and its camera."""
+    uu, vv = torch.meshgrid(torch.linspace(0, 1, 16), torch.linspace(0, 1, 16), indexing="xy")
+    tex = torch.stack([0.5 + 0.5 * torch.sin(9 * uu), 0.5 + 0.5 * torch.cos(7 * vv),
+                       0.2 + 0.6 * uu * vv])
+    quad = torch.tensor([[-0.9, 0.15, 0.0], [0.9, 0.15, 0.0], [0.9, 1.2, 0.0], [-0.9, 1.2, 0.0]])
+    floor = torch.tensor([[-6.0, 0, -6], [-6, 0, 6], [6, 0, 6], [6, 0, -6]])
+    positions = torch.cat([quad, floor])
+    faces = torch.tensor([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    uvs = torch.tensor([[0.0, 0], [1, 0], [1, 1], [0, 1]] + [[0.0, 0]] * 4)
+    normals = torch.tensor([[0.0, 0, 1]] * 4 + [[0.0, 1, 0]] * 4)
+    mats = [tr.Material(base_color_texture=tex, roughness_factor=0.9),
+            tr.Material(metallic_factor=1.0, roughness_factor=0.0)]
+    face_material = torch.tensor([0, 0, 1, 1])
+    if mirror_view:  # the reference draws the quad only
+        positions, faces, uvs, normals = quad, faces[:2, [0, 2, 1]], uvs[:4], normals[:4]
+        mats, face_material = mats[:1], face_material[:2]
+    scene = tr.RenderScene(positions=positions, faces=faces, uvs=uvs, normals=normals,
+                           materials=mats, face_material=face_material)
+    view = look_at([0.3, 0.9, 3.0], [0.0, 0.35, 0.0])
+    if mirror_view:  # reflect the world through y = 0 before the camera (winding flipped)
+        view = view @ torch.diag(torch.tensor([1.0, -1.0, 1.0, 1.0]))
+    return scene, view, perspective(50.0, 1.0, 0.1, 50.0)
+
+
+def test_mirror_plane_matches_the_mirrored_camera_render() -> None:
+    res = 64
+    scene, view, proj = _quad_scene()
+    renderer = tr.Renderer(res, shading="unlit")
+    out = renderer(scene, view, proj, channels=["depth", "normal", "roughness", "metallic",
+                                                "albedo", "mask"])
+    g = out.gbuffer
+    n_view = torch.einsum("ij,bjhw->bihw", view[0, :3, :3], g["normal"])
+    maps = SSR(edge_fade=0.0)(out.image, g["depth"], n_view, g["roughness"], g["metallic"],
+                              g["albedo"], projection=proj, return_maps=True)
+    ref_scene, ref_view, _ = _quad_scene(mirror_view=True)
+    ref = renderer(ref_scene, ref_view, proj)
+    floor = g["roughness"][0, 0] == 0
+    hit = (maps.confidence[0, 0] > 0) & floor
+    seen = (ref.alpha[0, 0] > 0) & floor
+    assert int(seen.sum()) > 200
+    # a depth buffer knows silhouettes to a pixel: hits and misses disagree within 1 px only
+    grown = F.max_pool2d(seen[None].float(), 3, 1, 1)[0] > 0
+    shrunk = -F.max_pool2d(-F.pad(seen[None].float(), (1, 1, 1, 1)), 3, 1)[0] > 0
+    assert int((hit & ~grown).sum()) == 0
+    assert int((shrunk & ~hit).sum()) == 0
+    err = (maps.reflection[0] - ref.image[0]).abs().amax(0)
+    assert float(err[hit & shrunk].max()) < 0.06  # inside: bilinear reads of the texture
+    assert float(err[hit & seen].median()) < 0.01
+
+
+def test_composite_replaces_the_fallback_where_it_hits() -> None:
+    image, depth, normal, rough, _, floor = _floor_and_wall()
+    albedo = torch.full_like(image, 0.9)
+    metallic = torch.ones_like(rough)
+    fallback = torch.rand_like(image) * 0.1
+    ssr = SSR(edge_fade=0.0, thickness=0.5)
+    maps = ssr(image, depth, normal, rough, metallic, albedo, intrinsics=K, fallback=fallback,
+               return_maps=True)
+    expect = image + maps.confidence * (maps.weight * maps.reflection - fallback)
+    torch.testing.assert_close(maps.image, expect)
+    hit = maps.confidence[0, 0] == 1
+    assert int(hit.sum()) > 300
+    # a full hit: the fallback is gone, the reflection is in, weighted like the split sum
+    ray = _rays()
+    n_dot_v = (ray[1:2] / ray.norm(dim=0, keepdim=True)).abs()[None]
+    w = specular_weight(n_dot_v, albedo, metallic, rough)
+    torch.testing.assert_close(maps.weight[:, :, hit], w[:, :, hit])
+    torch.testing.assert_close((maps.image - image + fallback)[:, :, hit],
+                               (w * maps.reflection)[:, :, hit])
+    # roughness 0, f0 = 0.9: Schlick's Fresnel between f0 and f90 = 1
+    assert 0.89 < float(maps.weight[:, :, hit].min()) and float(maps.weight.max()) <= 1.0
+    out = ssr(image, depth, normal, rough, metallic, albedo, intrinsics=K)
+    torch.testing.assert_close(out, image + maps.confidence * maps.weight * maps.reflection)
+
+
+def test_misses_fall_back_and_edges_fade() -> None:
+    image, depth, normal, rough, ref, floor = _floor_and_wall()
+    # no wall: every mirror ray leaves the frame -> confidence 0, image untouched
+    only_floor = torch.where(floor, depth[0, 0], torch.full_like(depth[0, 0], math.inf))
+    refl, conf = trace_reflections(image, only_floor[None, None], normal, rough, K)
+    assert float(conf.abs().max()) == 0.0 and float(refl.abs().max()) == 0.0
+    # edge fade: hits close to the border lose confidence, central ones keep 1
+    _, hard = trace_reflections(image, depth, normal, rough, K, edge_fade=0.0, thickness=0.5)
+    _, soft = trace_reflections(image, depth, normal, rough, K, edge_fade=0.25, thickness=0.5)
+    hit = hard > 0
+    assert bool((soft <= hard).all()) and bool((soft[hit] < 1).any())
+    assert float(soft[hit].max()) == pytest.approx(1.0)
+    # max_roughness: a floor rougher than the cutoff is not marched
+    _, none = trace_reflections(image, depth, normal, torch.full_like(rough, 0.7), K,
+                                max_roughness=0.6)
+    assert float(none.max()) == 0.0
+    # max_distance shorter than the way to the wall: nothing is hit
+    _, short = trace_reflections(image, depth, normal, rough, K, max_distance=0.5,
+                                 thickness=0.5)
+    assert 0 < int((short > 0).sum()) < 0.5 * int(hit.sum())
+    assert float(depth[short > 0].min()) > 3.5  # |R_z| <= 1: the wall is >= 4 - d away
+
+
+@pytest.mark.parametrize("case", ["empty", "sky", "grazing", "hostile"])
+def test_stress_inputs_are_finite(case: str) -> None:
+    torch.manual_seed(0)
+    b, h, w = 2, 12, 16
+    image = torch.rand(b, 3, h, w, dtype=torch.float64, requires_grad=True)
+    depth = torch.rand(b, 1, h, w, dtype=torch.float64) * 4 + 0.5
+    normal = torch.randn(b, 3, h, w, dtype=torch.float64)
+    rough = torch.zeros(b, 1, h, w, dtype=torch.float64)
+    if case == "empty":
+        depth = torch.zeros_like(depth)
+    elif case == "sky":
+        depth = torch.full_like(depth, math.inf)
+    elif case == "grazing":  # camera skimming a floor: normals almost perpendicular to view
+        depth = torch.linspace(0.5, 1e4, h, dtype=torch.float64).view(1, 1, h, 1).expand(
+            b, 1, h, w).contiguous()
+        normal = torch.tensor([0.0, 1.0, 1e-7], dtype=torch.float64).view(1, 3, 1, 1).expand(
+            b, 3, h, w)
+    else:  # zero normals, depth 0 / inf / huge / tiny, blinding and black pixels
+        normal[:, :, 0, :4] = 0
+        depth[:, :, 1, :3] = math.inf
+        depth[:, :, 2, :3] = 0
+        depth[:, :, 3, :3] = 1e30
+        depth[:, :, 4, :3] = 1e-30
+        with torch.no_grad():
+            image[:, :, 5] = 1e30
+            image[:, :, 6] = 0
+    albedo = torch.rand(b, 3, h, w, dtype=torch.float64)
+    metallic = torch.rand(b, 1, h, w, dtype=torch.float64)
+    k = torch.tensor([10.0, 10.0, (w - 1) / 2, (h - 1) / 2], dtype=torch.float64)
+    maps = SSR()(image, depth, normal, rough, metallic, albedo, intrinsics=k, return_maps=True)
+    for t in maps:
+        assert bool(torch.isfinite(t).all())
+    maps.image.sum().backward()
+    assert bool(torch.isfinite(image.grad).all())
+    if case in ("empty", "sky"):
+        assert torch.equal(maps.image, image) and float(maps.confidence.max()) == 0
+
+
+def test_gradcheck_image_and_fallback() -> None:
+    image, depth, normal, rough, _, _ = _floor_and_wall()
+    sl = (slice(None), slice(None), slice(30, 38), slice(20, 28))  # 8 x 8 around the crease
+    img = image[sl].clone().requires_grad_(True)
+    fb = torch.rand_like(img).requires_grad_(True)
+    dep, nrm, rgh = depth[sl], normal[sl], rough[sl]
+    albedo = torch.full_like(img, 0.8)
+    metal = torch.ones_like(rgh)
+    k = K - torch.tensor([0.0, 0.0, 20.0, 30.0], dtype=torch.float64)
+    ssr = SSR(edge_fade=0.3, thickness=0.5)
+    conf = ssr(img, dep, nrm, rgh, metal, albedo, intrinsics=k, return_maps=True).confidence
+    assert float(conf.max()) > 0  # some pixels reflect others of the crop
+
+    def f(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        return ssr(x, dep, nrm, rgh, metal, albedo, intrinsics=k, fallback=y)
+
+    assert torch.autograd.gradcheck(f, (img, fb), eps=1e-6, atol=1e-6, fast_mode=True)
+
+
+def test_float32_matches_float64() -> None:
+    image, depth, normal, rough, _, _ = _floor_and_wall()
+    r64, c64 = trace_reflections(image, depth, normal, rough, K, thickness=0.5)
+    r32, c32 = trace_reflections(image.float(), depth.float(), normal.float(), rough.float(),
+                                 K.float(), thickness=0.5)
+    both = (c64 > 0) & (c32 > 0)
+    assert int(both.sum()) > 0.95 * int((c64 > 0).sum())
+    assert float((r64 - r32.double()).abs().amax(1, keepdim=True)[both].median()) < 1e-3
+
+
+def test_disabled_and_bad_args() -> None:
+    img = torch.rand(1, 3, 4, 4)
+    d, n, r = torch.ones(1, 1, 4, 4), torch.zeros(1, 3, 4, 4), torch.zeros(1, 1, 4, 4)
+    k = torch.tensor([4.0, 4.0, 1.5, 1.5])
+    assert SSR(enabled=False)(img, d, n, r, r, img) is img
+    with pytest.raises(ValueError, match="projection, intrinsics"):
+        SSR()(img, d, n, r, r, img)
+    with pytest.raises(ValueError, match="normals"):
+        SSR()(img, d, torch.zeros(1, 3, 4, 5), r, r, img, intrinsics=k)
+    with pytest.raises(ValueError, match="depth: contains NaN"):
+        SSR()(img, torch.full_like(d, math.nan), n, r, r, img, intrinsics=k)
+    with pytest.raises(ValueError, match="fallback"):
+        SSR()(img, d, n, r, r, img, intrinsics=k, fallback=torch.zeros(1, 3, 2, 2))
+    for kw, name in (({"max_steps": 0}, "max_steps"), ({"thickness": 0.0}, "thickness"),
+                     ({"max_roughness": 1.5}, "max_roughness"), ({"edge_fade": -1}, "edge_fade"),
+                     ({"refine_steps": -1}, "refine_steps"), ({"max_distance": 0}, "max_distance")):
+        with pytest.raises(ValueError, match=name):
+            SSR(**kw)
+
+
+# ------------------------------------------------------------------------------ renderer
+def _glow_scene() -> tuple[tr.RenderScene, torch.Tensor, torch.Tensor]:
+    """An emissive quad (radiance independent of the lighting) above a mirror floor."""
+    scene, view, proj = _quad_scene()
+    scene.materials[0] = tr.Material(base_color_factor=[0.0, 0.0, 0.0, 1.0],
+                                     emissive_factor=[0.6, 0.3, 0.1], roughness_factor=1.0)
+    return scene, view, proj
+
+
+def _uniform_env(c: float) -> tr.Environment:
+    return tr.Environment(torch.full((3, 8, 16), c), specular_size=16, specular_levels=4,
+                          specular_samples=8)
+
+
+def test_renderer_replaces_the_ibl_specular_where_rays_hit() -> None:
+    """Under a uniform sky of radiance c, a mirror floor shows W c where its rays miss and
+    W L_quad where they hit: there the sky must be gone entirely (no double counting)."""
+    scene, view, proj = _glow_scene()
+    renderer = tr.Renderer(48, ssr=SSR(edge_fade=0.0), environment_background=False)
+    outs = [renderer(scene, view, proj, environment=_uniform_env(c)) for c in (0.2, 1.0)]
+    assert "ssr" in outs[0].plan
+    ref_scene, ref_view, _ = _quad_scene(mirror_view=True)
+    seen = tr.Renderer(48, shading="unlit")(ref_scene, ref_view, proj).alpha[0, 0] > 0
+    # 2 px away from the reflection's silhouette (also where it leaves the frame)
+    inside = -F.max_pool2d(-F.pad(seen[None].float(), (2, 2, 2, 2)), 5, 1)[0] > 0
+    outside = ~(F.max_pool2d(seen[None].float(), 5, 1, 2)[0] > 0)
+    floor = torch.zeros_like(seen)
+    floor[30:] = True  # below the quad's reflection's top edge: all floor in this view
+    inside, outside = inside & floor, outside & floor
+    assert int(inside.sum()) > 50 and int(outside.sum()) > 200
+    lo, hi = (o.image[0] for o in outs)
+    torch.testing.assert_close(lo[:, inside], hi[:, inside], atol=2e-3, rtol=0)
+    glow = torch.tensor([0.6, 0.3, 0.1]).view(3, 1)
+    assert float((hi[:, inside] - glow).abs().max()) < 0.05  # W ~ 1 for f0 = 1
+    # where rays miss, the floor keeps the sky's specular: W (1.0 - 0.2) with W ~ 1
+    assert float((hi[:, outside] - lo[:, outside]).min()) > 0.7
+
+
+def test_plan_runs_ssr_only_when_asked_and_useful() -> None:
+    scene, view, proj = _glow_scene()
+    env = _uniform_env(0.5)
+    assert "ssr" in tr.Renderer(16, ssr=SSR()).plan(scene, environment=env)
+    assert tr.Renderer(16, ssr=SSR()).plan(scene, environment=env).ssr
+    for renderer in (tr.Renderer(16), tr.Renderer(16, ssr=SSR(enabled=False)),
+                     tr.Renderer(16, shading="headlight", ssr=SSR())):
+        plan = renderer.plan(scene, environment=env)
+        assert "ssr" not in plan and not plan.ssr and "depth" not in plan.channels
+    rough = tr.RenderScene(positions=scene.positions, faces=scene.faces,
+                           materials=[tr.Material(roughness_factor=0.7)])
+    assert "ssr" not in tr.Renderer(16, ssr=SSR()).plan(rough, environment=env)
+    blend = tr.RenderScene(positions=scene.positions, faces=scene.faces, materials=[
+        tr.Material(roughness_factor=0.0, alpha_mode="BLEND")])
+    with pytest.warns(tr.NotImplementedWarning, match="BLEND"):
+        assert "ssr" not in tr.Renderer(16, ssr=SSR()).plan(blend, environment=env)
+    # skipped when asked but useless: identical to no SSR at all
+    a = tr.Renderer(16, ssr=SSR())(rough, view, proj, environment=env).image
+    b = tr.Renderer(16)(rough, view, proj, environment=env).image
+    assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("eye", [[0.0, 1e-4, 3.0], [0.0, -0.5, 3.0], [0.0, 0.9, 1e-3]])
+def test_renderer_stress_grazing_below_and_inside(eye: list[float]) -> None:
+    """Edge-on, from below the floor, almost above the quad: finite image and gradients."""
+    scene, _, proj = _quad_scene()
+    positions = scene.positions.clone().requires_grad_(True)
+    scene.positions = positions
+    view = look_at(eye, [0.0, 0.35, -1.0])
+    env = _uniform_env(0.7)
+    lights = tr.Lights(ambient=tr.sh_from_color(torch.tensor([[0.2, 0.2, 0.2]])))
+    out = tr.Renderer(24, ssr=SSR(), supersample=2)(scene, view, proj, lights=lights,
+                                                     environment=env)
+    assert "ssr" in out.plan and bool(torch.isfinite(out.image).all())
+    out.image.square().sum().backward()
+    assert bool(torch.isfinite(positions.grad).all())
