@@ -29,7 +29,10 @@ zero-area triangle), rendered forward and backward through ``tr.Renderer``:
 - environment: hostile environment maps (1 to 32 rows; zero, denormal, a single 1e6 texel),
   intensities 0 to 1e6, both diffuse methods, shown as background or not;
 - grazing: all of the above at random, cameras edge-on to the plane (elevation 0 or 1e-4
-  degrees) and from below it, supersampling, SSAO, every texture filter, float64.
+  degrees) and from below it, supersampling, SSAO, every texture filter, every shading
+  model, float64.
+Any kind may also draw screen-space reflections, fog with light shafts (densities 0 to 50,
+height falloffs 0 to 20), a dissolve (threshold 0, 0.3 or 1) and the multiscatter switch.
 For every render: NaN/Inf in the image, alpha and every float G-buffer channel, and in the
 gradients of a random loss with respect to vertex positions, material parameters, light
 parameters and the environment. A ``ValueError``/``TypeError`` is counted apart (the clear
@@ -547,10 +550,18 @@ def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
     res = (_randint(gen, 8, 40), _randint(gen, 8, 40))
     proj = tr.camera.perspective(_rand(gen, 20.0, 90.0), res[1] / res[0], 0.01).to(dtype)
     ssao = tr.post.SSAO() if wild and _chance(gen, 0.2) else None
+    shading = "pbr" if not wild or _chance(gen, 0.6) else _pick(gen, (
+        "blinn_phong", "half_lambert", "toon", "headlight", "unlit"))
+    # the optional passes: screen-space reflections, fog with light shafts, dissolve
+    ssr = tr.post.SSR(max_steps=_randint(gen, 4, 32)) if _chance(gen, 0.15) else None
+    fog = tr.Fog(density=_pick(gen, (0.0, 1e-3, 0.3, 50.0)), height_falloff=_pick(
+        gen, (0.0, 1e-6, 0.5, 20.0)), steps=_randint(gen, 1, 8)) if _chance(gen, 0.15) else None
+    dissolve = tr.Dissolve(threshold=_pick(gen, (0.0, 0.3, 1.0))) if _chance(gen, 0.1) else None
     renderer = tr.Renderer(
-        res, shading="pbr" if not wild or _chance(gen, 0.8) else _pick(gen, ("headlight", "unlit")),
+        res, shading=shading,
         supersample=_pick(gen, (1, 2)) if wild else 1, cull_backfaces=_chance(gen, 0.3),
-        texture_filter=_pick(gen, ("trilinear", "bilinear", "nearest")), ssao=ssao,
+        texture_filter=_pick(gen, ("trilinear", "bilinear", "nearest", "anisotropic")),
+        ssao=ssao, ssr=ssr, fog=fog, dissolve=dissolve, multiscatter=_chance(gen, 0.8),
         environment_background=_chance(gen, 0.5))
     out = renderer(scene, view, proj, lights, env, channels=tr.CHANNELS)
     c["covered"] += int((out.alpha > 0).sum())

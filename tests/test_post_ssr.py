@@ -341,3 +341,17 @@ def test_renderer_stress_grazing_below_and_inside(eye: list[float]) -> None:
     assert "ssr" in out.plan and bool(torch.isfinite(out.image).all())
     out.image.square().sum().backward()
     assert bool(torch.isfinite(positions.grad).all())
+
+
+def test_renderer_backward_to_positions_where_rays_hit() -> None:
+    """Found by scripts/stress.py: the march's state was built from depth that carried a
+    gradient to the vertices, and its in-place updates broke the backward pass. The march
+    is discrete: the image's gradient reaches the positions through the shading only."""
+    scene, view, proj = _glow_scene()
+    positions = scene.positions.clone().requires_grad_(True)
+    scene.positions = positions
+    out = tr.Renderer(32, ssr=SSR(edge_fade=0.0))(scene, view, proj,
+                                                  environment=_uniform_env(0.5))
+    assert float(out.plan.ssr) and "ssr" in out.plan
+    out.image.sum().backward()
+    assert positions.grad is not None and bool(torch.isfinite(positions.grad).all())

@@ -252,6 +252,9 @@ def trace_reflections(
         ``(reflection (B, 3, H, W), confidence (B, 1, H, W))``; both 0 where the ray missed
         or was not marched.
     """
+    # the march is discrete (where a ray hits carries no gradient): its state is built from
+    # detached geometry, so the in-place updates of the march never reach autograd
+    depth, normals, intrinsics = depth.detach(), normals.detach(), intrinsics.detach()
     b, _, h, w = depth.shape
     dev, dt = depth.device, depth.dtype
     valid = torch.isfinite(depth) & (depth > 0)
