@@ -14,6 +14,7 @@ grows the triangles: peak memory must stay flat.
     python scripts/bench_raster.py              # full table (~10 min on 2 cores)
     python scripts/bench_raster.py --threads 1  # torch and llvmpipe on one thread each
     python scripts/bench_raster.py --quick      # a few rows
+    python scripts/bench_raster.py --rows "5k 256 1" "82k frame 512 8" --before-src /tmp/before
     python scripts/bench_raster.py --profile --before-src /tmp/before --before-label "commit X"
 
 ``--profile`` writes the section ``raster-profile``: torch.profiler's top ops by self time
@@ -190,6 +191,25 @@ def profile_section(args) -> None:
     update_section("raster-profile", body, command="python " + shlex.join(argv))
 
 
+def rows_only(args) -> None:
+    """Run the rows named in ``--rows`` ("<faces> <res> <batch>") and print them (A/B against
+    ``--before-src`` when given: the two codes alternate, ``--repeats`` rounds each)."""
+    labels = ([("before", args.before_src)] if args.before_src else []) + [("after", None)]
+    print("row | code | torchraster ms | llvmpipe ms | ratio")
+    for text in args.rows:
+        *name, res, batch = text.split()
+        name = " ".join(name)
+        kind, subdiv = ("frame", SUBDIV["80k"]) if name == "82k frame" else ("sphere",
+                                                                             SUBDIV[name])
+        spec = {"kind": kind, "subdiv": subdiv, "res": int(res), "batch": int(batch),
+                "repeats": args.repeats, "gl": True, "threads": args.threads}
+        for label, src in labels:
+            r = run(spec, pythonpath=src)
+            print(f"{text} | {label} | {r['ours_s'] * 1e3:.1f} | "
+                  f"{r.get('gl_s', math.nan) * 1e3:.1f} | {r.get('ratio', math.nan):.2f}",
+                  flush=True)
+
+
 def run(spec: dict, pythonpath: str | None = None) -> dict:
     """Run ``worker(spec)`` in a fresh subprocess (clean peak-memory accounting), with
     llvmpipe on as many threads as torch."""
@@ -214,6 +234,10 @@ def main() -> None:
                     "torchraster package to profile as 'before'")
     ap.add_argument("--before-label", help="with --before-src: how to name that code in the "
                     "section (e.g. the commit it was exported from)")
+    ap.add_argument("--rows", nargs="+", metavar="ROW",
+                    help="run only these rows of the main table, e.g. '5k 256 1' '82k frame "
+                         "512 8' (faces, resolution, batch); prints them, writes no section; "
+                         "with --before-src, each row also for that code, in turns")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
@@ -222,6 +246,9 @@ def main() -> None:
         return
     if args.profile:
         profile_section(args)
+        return
+    if args.rows:
+        rows_only(args)
         return
     from benchmd import markdown_table, update_section
 

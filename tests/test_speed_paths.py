@@ -116,6 +116,49 @@ def test_occlusion_culling_changes_nothing(case: str, monkeypatch) -> None:
     assert (frags.face_id >= 0).any()
 
 
+@pytest.mark.parametrize("case", ["soup64", "soup32_tile12", "sphere_layers", "small_budget"])
+def test_ragged_pass_equals_block_passes(case: str, monkeypatch) -> None:
+    """The ragged pass over runs of few candidates (rasterize.ragged_keys: every block shape
+    in one candidate list) gives bit for bit the keys of one broadcast pass per block shape
+    (covered_keys): random soups in float32 and float64, a tile that is not a power of two
+    (blocks clamped at the image border), depth layers, and a tiny memory budget (many
+    ragged chunks)."""
+    gen = torch.Generator().manual_seed(11)
+    tile, layers, budget = 16, 1, 2**20
+    if case == "sphere_layers":
+        clip, faces, _ = _sphere_clip(b=2, subdiv=3)
+        res, layers = (52, 44), 2
+    else:
+        clip, faces, _ = random_soup(gen, 2, 400)
+        clip = clip if case == "soup64" else clip.float()
+        res = (37, 45)
+        tile = 12 if case == "soup32_tile12" else 16
+        budget = 2**14 if case == "small_budget" else budget
+
+    def keys() -> torch.Tensor:
+        return rasterize_module.resolve_keys(clip, faces, res, False, None, tile, budget,
+                                             320, layers=layers)
+
+    calls = []
+    orig = rasterize_module.ragged_keys
+
+    def spy(setup, runs, *args):
+        for found in orig(setup, runs, *args):
+            calls.append(found[0].numel())
+            yield found
+
+    monkeypatch.setattr(rasterize_module, "ragged_keys", spy)
+    monkeypatch.setattr(rasterize_module, "RAGGED_RUN_CANDIDATES", 2**40)  # every run
+    ragged = keys()
+    assert len(calls) >= (4 if case == "small_budget" else 1) and sum(calls) > 100
+    monkeypatch.setattr(rasterize_module, "RAGGED_RUN_CANDIDATES", 0)  # never
+    calls.clear()
+    plain = keys()
+    assert not calls
+    assert torch.equal(ragged, plain)
+    assert (plain[-1] != rasterize_module.EMPTY_KEY).any()
+
+
 def test_occlusion_culling_skips_hidden_back_faces(monkeypatch) -> None:
     """On a closed sphere most back faces are proven hidden and never binned."""
     clip, faces, _ = _sphere_clip(b=1, subdiv=4)

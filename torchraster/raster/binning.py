@@ -11,7 +11,8 @@ Every screen triangle becomes one or more *records*: a block of kh x kw pixel ce
 
 Records of one block shape are processed together in chunks of at most
 ``max_candidates`` pixel centres, which bounds the peak memory of a chunk independently of
-triangle size, resolution and batch size.
+triangle size, resolution and batch size. (Runs of small triangles with few candidates are
+instead tested all shapes at once by :func:`torchraster.raster.rasterize.ragged_keys`.)
 
 Exact shared edges: each edge's coefficients are computed from its two endpoints in a
 canonical (lexicographic) order and negated for the other side, and E(p) = A x + (B y + C)

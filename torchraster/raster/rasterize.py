@@ -19,12 +19,22 @@ The soft rasterizer (``soft.py``) reuses pass 1 with a wider :class:`Coverage`.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import torch
 
 from .._validate import check_frame_memory, check_resolution, check_tensor
 from ..numerics import floor_div_exact
 from .binning import (
+    DZDX,
+    DZDY,
+    EDGE_A,
+    EDGE_B,
+    EDGE_C,
     EDGE_MIN,
+    REF_X,
+    REF_Y,
+    REF_Z,
     Records,
     TriangleSetup,
     bin_triangles,
@@ -372,11 +382,97 @@ def _rasterize_group(screen, select, coverage, keys, resolution, tile, max_candi
     if len(screen) == 0:
         return
     setup = coverage.setup(screen)
+    if type(coverage) is Coverage and RAGGED_RUN_CANDIDATES > 0:
+        # Runs of few candidates: one ragged pass for all of them (fewer, longer ops).
+        few = [r for r in runs if r[0] * r[1] * r[3] < RAGGED_RUN_CANDIDATES]
+        if len(few) > 1 and sum(r[0] * r[1] * r[3] for r in few) < 2**24:
+            runs = [r for r in runs if r[0] * r[1] * r[3] >= RAGGED_RUN_CANDIDATES]
+            for found in ragged_keys(setup, few, resolution, max_candidates):
+                insert_layers(keys, *found)
     for records in bin_triangles(setup, runs, n_small, resolution, tile, max_candidates,
                                  margin=coverage.margin):
         found = coverage.cover(setup, records, resolution)
         if found is not None:
             insert_layers(keys, *found)
+
+
+#: Runs of small triangles (one block shape) with fewer candidates than this are tested
+#: together in one ragged pass (:func:`ragged_keys`) instead of one broadcast pass per
+#: shape: per-op overhead dominates such runs. 0 disables the ragged pass.
+RAGGED_RUN_CANDIDATES = 8192
+
+
+def ragged_keys(setup: TriangleSetup, runs: list[tuple[int, int, int, int]],
+                resolution: tuple[int, int], max_candidates: int
+                ) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+    """Test the small-triangle runs of several block shapes in one ragged candidate list
+    (each triangle's kh x kw block, row-major, one after the other).
+
+    Same blocks, edge and depth float ops as :func:`covered_keys` (coefficients gathered per
+    candidate instead of broadcast), so the keys are bit-identical.
+
+    Args:
+        setup: the per-triangle table, in :func:`~torchraster.raster.binning.sort_by_block`
+            order.
+        runs: (kh, kw, start, count) runs of that order, holding fewer than 2**24 candidates
+            in all (candidate indices are exact in float32).
+        resolution: (H, W).
+        max_candidates: candidates per chunk (a triangle is never split).
+
+    Returns:
+        An iterator over chunks: (pixel (M,), key (M,)) int64 flat pixel indices and
+        depth-resolve keys of the covered candidates (chunks with none are skipped).
+    """
+    h, w = resolution
+    dev = setup.box.device
+    spec = torch.tensor(runs, dtype=torch.int64, device=dev)  # (n_runs, 4)
+    n_runs = spec.shape[0]
+    lengths = spec[:, 3]
+    run_of = torch.repeat_interleave(torch.arange(n_runs, device=dev), lengths)
+    first = torch.cumsum(lengths, 0) - lengths
+    tri = (torch.arange(run_of.numel(), device=dev) - first.index_select(0, run_of)
+           + spec[:, 2].index_select(0, run_of))
+    kh, kw = spec[:, 0].index_select(0, run_of), spec[:, 1].index_select(0, run_of)
+    x0 = setup.box[0].index_select(0, tri).clamp_(max=w - kw)  # as in bin_triangles
+    y0 = setup.box[2].index_select(0, tri).clamp_(max=h - kh)
+    cand = kh * kw
+    cum = torch.cumsum(cand, 0)
+    total = int(cum[-1])
+    marks = torch.arange(max_candidates, max(max_candidates, total), max_candidates,
+                         device=dev)
+    cuts = (torch.searchsorted(cum, marks, right=True)).tolist()
+    bounds = sorted({0, tri.numel(), *[c for c in cuts if 0 < c < tri.numel()]})
+    dt = setup.coef.dtype
+    # Per-triangle rows gathered once per candidate (one component-major gather): edge A,
+    # B, C, threshold, block origin x0, y0, first candidate, kw (as floats: exact, pixel
+    # coordinates and candidate indices are below 2**24).
+    first_cand = cum - cand
+    table = torch.cat([setup.coef[:EDGE_MIN.stop].index_select(1, tri),
+                       torch.stack([x0, y0, first_cand, kw]).to(dt)])  # (16, R)
+    for s0, s1 in zip(bounds[:-1], bounds[1:], strict=False):
+        sl = slice(s0, s1)
+        counts = cand[sl]
+        c0 = int(first_cand[s0])
+        n = int(cum[s1 - 1]) - c0
+        rec = torch.repeat_interleave(torch.arange(s0, s1, device=dev), counts,
+                                      output_size=n)  # candidate -> record
+        g = table.index_select(1, rec)  # (16, n)
+        local = torch.arange(c0, c0 + n, dtype=dt, device=dev).sub_(g[14])
+        ly = local.div(g[15]).floor_()  # exact: integers below 2**24
+        px = local.sub_(ly * g[15]).add_(g[12])  # x0 + local x
+        py = ly.add_(g[13])  # y0 + local y
+        # the three edges at once, as block_edge: A x + (B y + C) >= threshold
+        edge = torch.ge((g[EDGE_B] * py).add_(g[EDGE_C]).add_(g[EDGE_A] * px), g[EDGE_MIN])
+        flat = edge[0].logical_and_(edge[1]).logical_and_(edge[2]).nonzero().squeeze(1)
+        if flat.numel() == 0:
+            continue
+        t = tri.index_select(0, rec.index_select(0, flat))
+        px, py = px.index_select(0, flat), py.index_select(0, flat)
+        dzdx, dzdy, rx, ry, rz = (setup.coef[k].index_select(0, t)
+                                  for k in (DZDX, DZDY, REF_X, REF_Y, REF_Z))
+        depth = torch.add(rz.add_(dzdy.mul_(py - ry)), dzdx.mul_(px - rx))
+        pixel = (setup.batch.index_select(0, t) * (h * w) + py.long() * w + px.long())
+        yield pixel, depth_key(depth.clamp_(-1.0, 1.0)) | setup.key_lo.index_select(0, t)
 
 
 def _visible_subset(screen: ScreenTriangles, idx: torch.Tensor, keys: torch.Tensor,
@@ -391,7 +487,9 @@ def _visible_subset(screen: ScreenTriangles, idx: torch.Tensor, keys: torch.Tens
     if idx.numel() == 0:
         return idx
     b, h, w = shape
-    pyramid = _key_pyramid(keys.view(b, h, w))
+    items = screen.batch.index_select(0, idx)
+    lo, hi = int(items.min()), int(items.max())  # a chunk's items are few: build only theirs
+    pyramid = _key_pyramid(keys.view(b, h, w)[lo:hi + 1])
     x, y, z = screen.pos.view(9, -1).index_select(1, idx).view(3, 3, -1)
     box = tested_boxes(screen.box.index_select(1, idx), (h, w), tile)
     bound = depth_key(plane_lower_bound(depth_planes(x, y, z), box).clamp_(max=1.0))
@@ -405,7 +503,7 @@ def _visible_subset(screen: ScreenTriangles, idx: torch.Tensor, keys: torch.Tens
     meta[0] = meta[0].cumsum(0)
     offset, height, width = meta.index_select(1, level.clamp_(max=len(pyramid) - 1))
     shift = level + (_HIZ_TILE.bit_length() - 1)
-    base = offset + screen.batch.index_select(0, idx) * height * width
+    base = offset + (items - lo) * height * width
     ys0, ys1 = (box[2] >> shift) * width + base, (box[3] >> shift) * width + base
     xs0, xs1 = box[0] >> shift, box[1] >> shift
     tile_max = torch.maximum(
