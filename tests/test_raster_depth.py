@@ -113,3 +113,24 @@ def test_rasterize_depth_matches_rasterize():
     covered = frags.face_id >= 0
     assert torch.equal(torch.isfinite(depth), covered)
     assert (depth[covered] - frags.depth[covered]).abs().max() < 1e-5
+
+
+def test_depth_stays_in_range_at_an_infinite_far_plane() -> None:
+    """Found by scripts/stress.py (near_far, scene 363): one triangle seen through an
+    infinite-far projection (z = w at every vertex) far away; float32 rounding of the depth
+    plane equation gave NDC depth 1.0000113 at a covered pixel. Depth is clamped to [-1, 1]."""
+    clip = torch.tensor([
+        [[213650.8125, -490237.84375, 12762203.0, 12762203.0],
+         [-1450747.0, 176338.234375, 6287421.5, 6287421.5],
+         [2375827.25, 1470811.875, 2274876.25, 2274876.25]],
+        [[208514.796875, -481447.59375, 1282732.125, 1282732.125],
+         [-184883.828125, -1236667.875, 2283697.25, 2283697.25],
+         [174007.921875, 187892.921875, -147049.015625, -147049.015625]],
+        [[375.6849670410156, 111.37980651855469, 3670.12451171875, 3670.13037109375],
+         [151.49497985839844, -1173.793701171875, 1249.5513916015625, 1249.55712890625],
+         [770.131591796875, -862.7061157226562, -280.0410461425781, -280.0352478027344]]])
+    frags = tr.rasterize(clip, torch.tensor([[0, 1, 2]]), resolution=(48, 81),
+                         cull_backfaces=True)
+    hit = frags.face_id >= 0
+    assert int(hit.sum()) > 100
+    assert float(frags.depth[hit].abs().max()) <= 1.0

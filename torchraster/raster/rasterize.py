@@ -116,8 +116,8 @@ class Fragments:
 
     @property
     def depth_packed(self) -> torch.Tensor:
-        """(N,) NDC depth of the covered pixels (computed on first use by ``rasterize``'s
-        fragments, differentiable as if computed there)."""
+        """(N,) NDC depth in [-1, 1] of the covered pixels (computed on first use by
+        ``rasterize``'s fragments, differentiable as if computed there)."""
         if self._depth_packed is None and self._depth_fn is not None:
             self._depth_packed = self._depth_fn()
             self._depth_fn = None
@@ -806,8 +806,10 @@ class _PixelPass(torch.autograd.Function):
             dv = row.to(dt).sub_(ref_g[1])
             if keep:
                 uv[0, sl], uv[1, sl] = du, dv
-            if depth:  # rows D, Dx, Dy
-                torch.addcmul(gather[0], gather[1], du, out=out[sl]).addcmul_(gather[2], dv)
+            if depth:  # rows D, Dx, Dy; clamped: the plane equation's float rounding can
+                # pass the far plane by ~1e-5 (scripts/stress.py); gradient straight through
+                torch.addcmul(gather[0], gather[1], du, out=out[sl]).addcmul_(
+                    gather[2], dv).clamp_(-1.0, 1.0)
                 continue
             lam = torch.addcmul(gather[FT_L], gather[FT_A], du).addcmul_(gather[FT_B], dv)
             inv = torch.sum(lam, 0, out=inv_buf[:m])
