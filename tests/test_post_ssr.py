@@ -4,6 +4,7 @@ contract, misses, fades, hostile inputs, gradients, renderer plan."""
 from __future__ import annotations
 
 import math
+import warnings
 
 import pytest
 import torch
@@ -355,3 +356,15 @@ def test_renderer_backward_to_positions_where_rays_hit() -> None:
     assert float(out.plan.ssr) and "ssr" in out.plan
     out.image.sum().backward()
     assert positions.grad is not None and bool(torch.isfinite(positions.grad).all())
+
+
+def test_plan_reads_a_roughness_factor_that_needs_grad() -> None:
+    """A material fit makes roughness a 0-dim tensor that needs grad: the planner reads it
+    without autograd's tensor-to-scalar warning."""
+    scene, _, _ = _glow_scene()
+    rough = torch.tensor(0.1, requires_grad=True)
+    fit = tr.RenderScene(positions=scene.positions, faces=scene.faces,
+                         materials=[tr.Material(roughness_factor=rough)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert "ssr" in tr.Renderer(16, ssr=SSR()).plan(fit, environment=_uniform_env(0.5))

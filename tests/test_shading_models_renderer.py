@@ -265,3 +265,19 @@ def test_the_shipped_config_renders_from_a_fresh_clone():
     cfg.render.resolution, cfg.render.supersample = 24, 1
     (view,) = tr.render_config(cfg)
     assert view.plan.shading == "toon" and bool(torch.isfinite(view.images["color"]).all())
+
+
+def test_options_a_model_does_not_read_are_refused(tmp_path):
+    """multiscatter switches pbr's energy terms; the stylised models have none: setting it
+    there would be a silent no-op, so it is refused (Renderer and YAML), as is a
+    max_anisotropy without the anisotropic filter."""
+    with pytest.raises(ValueError, match="multiscatter"):
+        tr.Renderer(8, shading="toon", multiscatter=False)
+    tr.Renderer(8, shading="pbr", multiscatter=False)
+    with pytest.raises(ValueError, match="max_anisotropy"):
+        tr.Renderer(8, texture_filter="trilinear", max_anisotropy=4)
+    tr.Renderer(8, texture_filter="anisotropic", max_anisotropy=4)
+    text = TOON_YAML.replace("render:", "render:\n  multiscatter: false", 1)
+    assert text != TOON_YAML
+    with pytest.raises(tr.ConfigError, match="multiscatter"):
+        tr.parse_config(text, "t.yaml", base_dir=tmp_path)

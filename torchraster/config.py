@@ -480,6 +480,13 @@ class RenderConfig(_Strict):
         return self
 
     @model_validator(mode="after")
+    def _multiscatter_needs_pbr(self) -> RenderConfig:
+        if "multiscatter" in self.model_fields_set and self.shading not in (None, "pbr"):
+            raise ValueError(f"multiscatter: energy terms of shading: pbr only; shading is "
+                             f"{self.shading!r}")
+        return self
+
+    @model_validator(mode="after")
     def _anisotropy_needs_filter(self) -> RenderConfig:
         if "max_anisotropy" in self.model_fields_set and self.texture_filter != "anisotropic":
             raise ValueError(f"max_anisotropy: used by texture_filter anisotropic only; "

@@ -36,6 +36,7 @@ from .anisotropic import check_max_anisotropy
 from .background import FITS, fit_background
 from .dissolve import Dissolve
 from .gbuffer import CHANNELS, GBuffer, MipCache, check_channels, geometry_pass
+from .material import Material
 from .mesh import transform_points, vertex_normals
 from .numerics import safe_normalize
 from .post.ssr import environment_specular, specular_weight
@@ -403,6 +404,9 @@ class Renderer(nn.Module):
         self.background_fit = background_fit
         self.texture_filter = texture_filter
         self.max_anisotropy = check_max_anisotropy(max_anisotropy)
+        if self.max_anisotropy != 16 and texture_filter != "anisotropic":
+            raise ValueError(f"max_anisotropy: used by texture_filter='anisotropic' only; "
+                             f"texture_filter is {texture_filter!r}")
         self.ssao = ssao if ssao is not None and getattr(ssao, "enabled", True) else None
         self.ssr = ssr if ssr is not None and getattr(ssr, "enabled", True) else None
         self.mip_cache = MipCache(mip_cache_bytes)
@@ -423,6 +427,9 @@ class Renderer(nn.Module):
                             f"{type(fog).__name__}")
         self.fog = fog
         self.multiscatter = bool(multiscatter)
+        if not self.multiscatter and shading != "pbr":
+            raise ValueError(f"multiscatter: the energy terms of pbr shading; shading is "
+                             f"{shading!r}, which has none to switch off")
         if dissolve is not None and not isinstance(dissolve, Dissolve):
             raise TypeError(f"dissolve: expected a torchraster.dissolve.Dissolve or None, got "
                             f"{type(dissolve).__name__}")
@@ -513,9 +520,11 @@ class Renderer(nn.Module):
                           NotImplementedWarning, stacklevel=4)
             return False
         cutoff = getattr(self.ssr, "max_roughness", 1.0)
-        return any(m is not None and (m.metallic_roughness_texture is not None
-                                      or float(m.roughness_factor) < cutoff)
-                   for m in scene.materials)
+        def smooth(m: Material) -> bool:  # the factor may need grad (a material fit)
+            rough = float(torch.as_tensor(m.roughness_factor).detach())
+            return m.metallic_roughness_texture is not None or rough < cutoff
+
+        return any(m is not None and smooth(m) for m in scene.materials)
 
     def _plan_dissolve(self) -> str:
         """The dissolve step of the plan ("" without the effect)."""
