@@ -36,7 +36,7 @@ from torchraster.hdr_io import read_hdr
 from torchraster.shading import Lights, shade
 from torchraster.shading.ibl import Environment, dfg_lut, lookup_dfg, shade_ibl
 from torchraster.shading.lights import DirectionalLights, PointLights
-from torchraster.testing.reference_brdf import heitz_v, walter_ggx
+from torchraster.testing.reference_brdf import furnace_hemisphere, heitz_v, walter_ggx
 from torchraster.texture import latlong_directions, latlong_solid_angles
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -64,22 +64,9 @@ def hemisphere_lights(theta_v: float, n_theta: int = 200, n_phi: int = 64) -> Li
     """Directional lights of unit radiance on a half-vector quadrature of the hemisphere
     (dw_l = 4 (v.h) dw_h, graded towards the normal): the rendered sum is the
     directional albedo of the BRDF the punctual path evaluates."""
-    th = 0.5 * math.pi * torch.linspace(0, 1, n_theta, dtype=F64) ** 3
-    tw = torch.zeros(n_theta, dtype=F64)
-    tw[1:] += 0.5 * (th[1:] - th[:-1])
-    tw[:-1] += 0.5 * (th[1:] - th[:-1])
-    ph = (torch.arange(n_phi, dtype=F64) + 0.5) * (2 * math.pi / n_phi)
-    t, p = torch.meshgrid(th, ph, indexing="ij")
-    h = torch.stack([t.sin() * p.cos(), t.sin() * p.sin(), t.cos()], -1).reshape(-1, 3)
-    v = torch.tensor([math.sin(theta_v), 0.0, math.cos(theta_v)], dtype=F64)
-    vh = h @ v
-    l = 2 * vh[:, None] * h - v
-    w = (tw[:, None] * th.sin()[:, None] * (2 * math.pi / n_phi)).expand(-1, n_phi)
-    w = (w.reshape(-1) * 4 * vh).clamp_min(0)
-    keep = (w > 0) & (l[:, 2] > 0)
-    k = int(keep.sum())
+    l, w = furnace_hemisphere(theta_v, n_theta, n_phi)
     return Lights(directional=DirectionalLights(
-        direction=-l[keep][None], color=torch.ones(1, k, 3, dtype=F64), intensity=w[keep][None]))
+        direction=-l[None], color=torch.ones(1, l.shape[0], 3, dtype=F64), intensity=w[None]))
 
 
 def furnace(kind: str, metallic: float, rough: float, multiscatter: bool) -> float:

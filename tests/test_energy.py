@@ -20,7 +20,7 @@ from torchraster.shading import Lights, shade
 from torchraster.shading.energy import dfg_terms, energy_terms
 from torchraster.shading.ibl import Environment, dfg_lut, shade_ibl
 from torchraster.shading.lights import DirectionalLights
-from torchraster.testing.reference_brdf import heitz_v, walter_ggx
+from torchraster.testing.reference_brdf import furnace_hemisphere, heitz_v, walter_ggx
 
 F64 = torch.float64
 THETAS = (0.0, 0.7, 1.3)  # view angles from the normal
@@ -73,25 +73,9 @@ def _hemisphere_lights(theta_v: float, n_theta: int = 160, n_phi: int = 48) -> L
     """Directional lights on a quadrature of the light hemisphere, parametrised by the half
     vector (graded towards the normal, dw_l = 4 (v.h) dw_h): radiance 1 from every
     direction, i.e. sum of f cos E over the lights = the directional albedo of f."""
-    s = torch.linspace(0, 1, n_theta, dtype=F64)
-    th = 0.5 * math.pi * s**3
-    tw = torch.zeros(n_theta, dtype=F64)  # trapezoid weights of the graded nodes
-    dth = th[1:] - th[:-1]
-    tw[1:] += 0.5 * dth
-    tw[:-1] += 0.5 * dth
-    ph = (torch.arange(n_phi, dtype=F64) + 0.5) * (2 * math.pi / n_phi)
-    t, p = torch.meshgrid(th, ph, indexing="ij")
-    h = torch.stack([t.sin() * p.cos(), t.sin() * p.sin(), t.cos()], -1).reshape(-1, 3)
-    v = torch.tensor([math.sin(theta_v), 0.0, math.cos(theta_v)], dtype=F64)
-    vh = h @ v
-    l = 2 * vh[:, None] * h - v
-    w = (tw[:, None] * th.sin()[:, None] * (2 * math.pi / n_phi)).expand(-1, n_phi)
-    w = (w.reshape(-1) * 4 * vh).clamp_min(0)
-    keep = (w > 0) & (l[:, 2] > 0)
-    return Lights(directional=DirectionalLights(direction=-l[keep][None],
-                                                color=torch.ones(1, int(keep.sum()), 3,
-                                                                 dtype=F64),
-                                                intensity=w[keep][None]))
+    l, w = furnace_hemisphere(theta_v, n_theta, n_phi)
+    return Lights(directional=DirectionalLights(
+        direction=-l[None], color=torch.ones(1, l.shape[0], 3, dtype=F64), intensity=w[None]))
 
 
 @pytest.mark.parametrize("metallic", [1.0, 0.0])

@@ -77,3 +77,30 @@ def directional_albedo(
     f = torch.where((vh[0] > 0) & (l[2] > 0), f * 4 * vh[0], torch.zeros_like(f))
     inner = f.mean(dim=1) * 2 * math.pi  # uniform in phi
     return torch.trapezoid(inner * th.sin(), th).item()
+
+
+def furnace_hemisphere(theta_v: float, n_theta: int = 160, n_phi: int = 48
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+    """A quadrature of the light hemisphere around the normal +z for the view at polar angle
+    ``theta_v`` (in the x-z plane), parametrised by the half vector (graded towards the
+    normal, dw_l = 4 (v.h) dw_h): with radiance 1 from every node, ``sum_k f(l_k) cos_k
+    weight_k`` is the directional albedo of a BRDF f (a white furnace of punctual lights).
+
+    Returns:
+        ``(l, weight)``: unit light directions ``(K, 3)`` and solid-angle weights ``(K,)``,
+        float64, only the nodes above the surface with a positive weight.
+    """
+    th = 0.5 * math.pi * torch.linspace(0, 1, n_theta, dtype=torch.float64) ** 3
+    tw = torch.zeros(n_theta, dtype=torch.float64)  # trapezoid weights of the graded nodes
+    tw[1:] += 0.5 * (th[1:] - th[:-1])
+    tw[:-1] += 0.5 * (th[1:] - th[:-1])
+    ph = (torch.arange(n_phi, dtype=torch.float64) + 0.5) * (2 * math.pi / n_phi)
+    t, p = torch.meshgrid(th, ph, indexing="ij")
+    h = torch.stack([t.sin() * p.cos(), t.sin() * p.sin(), t.cos()], -1).reshape(-1, 3)
+    v = torch.tensor([math.sin(theta_v), 0.0, math.cos(theta_v)], dtype=torch.float64)
+    vh = h @ v
+    l = 2 * vh[:, None] * h - v
+    w = (tw[:, None] * th.sin()[:, None] * (2 * math.pi / n_phi)).expand(-1, n_phi)
+    w = (w.reshape(-1) * 4 * vh).clamp_min(0)
+    keep = (w > 0) & (l[:, 2] > 0)
+    return l[keep], w[keep]
