@@ -71,9 +71,16 @@ def setup_triangles(tris: ScreenTriangles) -> TriangleSetup:
     # E_ab(p) = cross(b - a, p - a) = A x + B y + C has the sign of the area inside the
     # triangle: orient every edge so that inside is positive (negation is exact).
     sign = torch.where(swap, -1.0, 1.0).to(x.dtype) * torch.sign(tris.area)
-    ea = (ay - by).mul_(sign)
-    eb = (bx - ax).mul_(sign)
-    ec = (ax * by - ay * bx).mul_(sign)
+    ea, eb = ay - by, bx - ax
+    # C through the canonical endpoint a: C = -(A ax + B ay). The textbook ax by - ay bx
+    # cancels products of size |a| |b| (~1e6 at 1024²) down to C ~ |a| |b - a|, and its
+    # float32 rounding moved short edges by ~0.01 px (a crack between two faces whose
+    # shared-edge centres fell outside the other face's pixel box). This form rounds
+    # terms of size |A| |a| only: the edge moves by a few eps |a| pixels, which the pixel
+    # boxes absorb (clip.BOX_SLACK).
+    ec = torch.add(ea * ax, eb * ay).neg_().mul_(sign)
+    ea.mul_(sign)
+    eb.mul_(sign)
     # Top-left rule (y down): an edge whose inward normal points right (A > 0), or down
     # on a horizontal edge (A == 0, B > 0), owns the centres exactly on it (E >= 0); other
     # edges need E > 0, written as E >= the smallest positive (subnormal) float.

@@ -143,8 +143,12 @@ def clip_and_project(
         ok &= area < 0
     # Pixel boxes; cull triangles whose box holds no pixel centre (tiny or off-screen).
     xmin, xmax, ymin, ymax = x.amin(0), x.amax(0), y.amin(0), y.amax(0)
-    if margin:
-        xmin, xmax, ymin, ymax = xmin - margin, xmax + margin, ymin - margin, ymax + margin
+    # Grown by the rounding of the edge functions (box_slack): a centre that float32 edges
+    # put inside a triangle is in its box, so a shared edge never loses a centre to both
+    # of its triangles' boxes.
+    grow = box_slack(torch.maximum(torch.maximum(xmin.abs(), xmax.abs()),
+                                   torch.maximum(ymin.abs(), ymax.abs()))).add_(margin)
+    xmin, xmax, ymin, ymax = xmin - grow, xmax + grow, ymin - grow, ymax + grow
     xmin = torch.ceil(xmin.clamp_(min=0))
     xmax = torch.floor(xmax.clamp_(max=w - 1))
     ymin = torch.ceil(ymin.clamp_(min=0))
@@ -155,6 +159,15 @@ def clip_and_project(
     box = torch.stack([xmin, xmax, ymin, ymax]).nan_to_num_(0.0).long()
     return ScreenTriangles(pos=pos, area=area, box=box, face=face_out, batch=batch_out,
                            valid=ok)
+
+
+def box_slack(extent: torch.Tensor) -> torch.Tensor:
+    """How far (pixels) float rounding can move a triangle's edges (binning's
+    A x + (B y + C), with C through an endpoint) given the largest vertex coordinate
+    magnitude ``extent`` (N,): C and the evaluation round terms up to (|A| + |B|) extent,
+    about 3 eps (|A| + |B|) extent in all, i.e. 4.3 eps extent pixels of distance, plus eps
+    extent for the rounded edge direction; 8 eps (extent + 1) bounds both."""
+    return (extent + 1).mul_(8 * torch.finfo(extent.dtype).eps)
 
 
 def _lex_less(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
