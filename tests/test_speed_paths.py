@@ -103,6 +103,7 @@ def test_occlusion_culling_changes_nothing(case: str, monkeypatch) -> None:
         clip = clip.float()
         res = (37, 45)
     monkeypatch.setattr(rasterize_module, "OCCLUSION_CULLING", True)
+    monkeypatch.setattr(rasterize_module, "OCCLUSION_MIN_CANDIDATES", 0)  # even small scenes
     with_cull = _keys(clip, faces, res, tile=tile)
     frags = tr.rasterize(clip, faces, res, tile=tile)
     depth = tr.raster.rasterize_depth(clip, faces, res, tile=tile)
@@ -160,7 +161,8 @@ def test_ragged_pass_equals_block_passes(case: str, monkeypatch) -> None:
 
 
 def test_occlusion_culling_skips_hidden_back_faces(monkeypatch) -> None:
-    """On a closed sphere most back faces are proven hidden and never binned."""
+    """On a closed sphere most back faces are proven hidden and never binned (when their
+    boxes hold enough centres to pay for the test: rasterize.OCCLUSION_MIN_CANDIDATES)."""
     clip, faces, _ = _sphere_clip(b=1, subdiv=4)
     seen = {}
     orig = rasterize_module._visible_subset
@@ -173,6 +175,8 @@ def test_occlusion_culling_skips_hidden_back_faces(monkeypatch) -> None:
 
     monkeypatch.setattr(rasterize_module, "_visible_subset", spy)
     tr.rasterize(clip, faces, (256, 256))
+    assert not seen, "a small scene's back faces are binned without the occlusion test"
+    tr.rasterize(clip, faces, (1024, 1024))
     assert seen["in"] > 1000 and seen["out"] < 0.5 * seen["in"]
 
 

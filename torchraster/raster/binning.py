@@ -145,6 +145,14 @@ def block_edge(coef: torch.Tensor, e: int, px: torch.Tensor, py: torch.Tensor) -
     return torch.add(ey[:, None, :], ex[None, :, :])
 
 
+def block_edges(coef: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
+    """The three edge functions at once: (3, kh, kw, R), entry e bit-identical to
+    :func:`block_edge` (the same float ops in the same order, A x + (B y + C))."""
+    ex = coef[EDGE_A][:, None, :] * px
+    ey = (coef[EDGE_B][:, None, :] * py).add_(coef[EDGE_C][:, None, :])
+    return torch.add(ey[:, :, None, :], ex[:, None, :, :])
+
+
 def block_depth(coef: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
     """Depth planes of R triangles at a (kh, kw, R) block of pixel centres (see
     :func:`block_edge`): z0 + dzdx (x - x0) + dzdy (y - y0)."""

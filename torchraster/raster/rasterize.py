@@ -39,7 +39,7 @@ from .binning import (
     TriangleSetup,
     bin_triangles,
     block_depth,
-    block_edge,
+    block_edges,
     depth_planes,
     plane_lower_bound,
     setup_triangles,
@@ -356,10 +356,11 @@ def resolve_keys(clip_pos, faces, resolution, cull_backfaces, face_ranges, tile,
                                                     max_candidates // 8):
             screen = clip_and_project(pos, screen_pos, codes, faces, face_ids, batch_ids,
                                       (h, w), cull_backfaces, margin=coverage.margin)
-            if not (cull_hidden and screen.valid is not None):
+            front = screen.area < 0
+            if not (cull_hidden and screen.valid is not None
+                    and _back_candidates(screen, front) >= OCCLUSION_MIN_CANDIDATES):
                 _rasterize_group(screen, None, coverage, keys, (h, w), tile, max_candidates)
                 continue
-            front = screen.area < 0
             _rasterize_group(screen, (screen.valid & front).nonzero().squeeze(1), coverage,
                              keys, (h, w), tile, max_candidates)
             back = _visible_subset(screen, (screen.valid & ~front).nonzero().squeeze(1),
@@ -373,6 +374,17 @@ def resolve_keys(clip_pos, faces, resolution, cull_backfaces, face_ranges, tile,
 #: either way (a switch for tests and benchmarks).
 OCCLUSION_CULLING = True
 _HIZ_TILE = 16  #: pixels per side of the finest tile of the occlusion test
+#: Occlusion culling runs only when the valid back faces' pixel boxes hold at least this
+#: many centres: below, the second binning pass and the depth pyramid cost more than the
+#: candidates they save (5k faces at 256², batch 1: 10.3 ms without vs 11.8 ms with).
+OCCLUSION_MIN_CANDIDATES = 2**18
+
+
+def _back_candidates(screen: ScreenTriangles, front: torch.Tensor) -> int:
+    """Pixel centres in the boxes of the valid back-facing triangles of ``screen``."""
+    box = screen.box
+    size = (box[1] - box[0] + 1) * (box[3] - box[2] + 1)
+    return int(size.masked_fill_(front | ~screen.valid, 0).sum())
 
 
 def _rasterize_group(screen, select, coverage, keys, resolution, tile, max_candidates):
@@ -612,10 +624,8 @@ def covered_keys(setup: TriangleSetup, rec: Records, resolution: tuple[int, int]
         face = rec.take(setup.key_lo).expand(rec.kh * rec.kw, -1).reshape(-1)
         depth = block_depth(coef, px, py).view(-1)
         return (local + base).view(-1), depth_key(depth.clamp_(-1.0, 1.0)) | face
-    inside = None
-    for e in range(3):
-        edge = torch.ge(block_edge(coef, e, px, py), coef[EDGE_MIN][e])  # bool: 1 B a test
-        inside = edge if inside is None else inside.logical_and_(edge)
+    edge = torch.ge(block_edges(coef, px, py), coef[EDGE_MIN][:, None, None, :])
+    inside = edge[0].logical_and_(edge[1]).logical_and_(edge[2])
     flat = inside.view(-1).nonzero().squeeze(1)
     if flat.numel() == 0:
         return None
