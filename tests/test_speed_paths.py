@@ -342,3 +342,22 @@ def test_environments_are_shared_by_content(monkeypatch) -> None:
     assert grad.specular_chain is not a.specular_chain and grad.specular_chain[1].requires_grad
     monkeypatch.setattr(ibl, "ENV_CACHE_BYTES", 0)
     assert ibl.Environment(radiance).specular_chain is not a.specular_chain
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_fused_and_per_edge_tests_agree(dtype: torch.dtype, monkeypatch) -> None:
+    """covered_keys tests the three edges in one broadcast for small chunks and one edge at
+    a time for large ones: bit-identical keys either way (soup with slivers and shared
+    edges, and a sphere)."""
+    gen = torch.Generator().manual_seed(21)
+    soup, soup_faces, _ = random_soup(gen, 2, 300)
+    sphere, sphere_faces, _ = _sphere_clip(b=2, subdiv=3)
+    for clip, faces in ((soup.to(dtype), soup_faces), (sphere.to(dtype), sphere_faces)):
+        keys = {}
+        for name, limit in (("fused", 2**40), ("per_edge", 0)):
+            monkeypatch.setattr(rasterize_module, "FUSED_EDGE_CANDIDATES", limit)
+            monkeypatch.setattr(rasterize_module, "RAGGED_RUN_CANDIDATES", 0)  # all blocks
+            keys[name] = rasterize_module.resolve_keys(clip, faces, (41, 37), False, None, 16,
+                                                       2**20, 320)
+        assert torch.equal(keys["fused"], keys["per_edge"])
+        assert (keys["fused"] != rasterize_module.EMPTY_KEY).sum() > 200
