@@ -167,10 +167,16 @@ def _canonical_rotation(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor):
     def before(i: int, j: int) -> torch.Tensor:
         return (x[i] < x[j]) | ((x[i] == x[j]) & (y[i] <= y[j]))
 
-    first = torch.where(before(0, 1) & before(0, 2), 0, torch.where(before(1, 2), 1, 2))
-    order = first + torch.arange(3, device=x.device)[:, None]  # (3, N), mod 3 below
-    order = torch.where(order >= 3, order - 3, order)
-    return x.gather(0, order), y.gather(0, order), z.gather(0, order)
+    first0 = before(0, 1) & before(0, 2)
+    first1 = ~first0 & before(1, 2)
+    first2 = ~(first0 | first1)
+
+    def rotate(r: torch.Tensor) -> torch.Tensor:  # selects, not a gather: ~2x faster
+        return torch.stack([torch.where(first1, r[1], torch.where(first2, r[2], r[0])),
+                            torch.where(first1, r[2], torch.where(first2, r[0], r[1])),
+                            torch.where(first1, r[0], torch.where(first2, r[1], r[2]))])
+
+    return rotate(x), rotate(y), rotate(z)
 
 
 @dataclass
@@ -244,19 +250,17 @@ def sort_by_block(tris: ScreenTriangles, resolution: tuple[int, int], tile: int,
     h, w = resolution
     if select is None and tris.valid is not None:
         select = tris.valid.nonzero().squeeze(1)
-    box = tris.box if select is None else tris.box.index_select(1, select)
+    box = tris.box if select is None else take_columns(tris.box, select)
     small, kh, kw = _block_shapes(box, resolution, tile)
     big_key = (h + 1) * (w + 1)
     shape_key = torch.where(small, kh * (w + 1) + kw, big_key)
-    shape_key, order = torch.sort(shape_key)
+    shape_key, by_shape = torch.sort(shape_key)
     keys, counts = torch.unique_consecutive(shape_key, return_counts=True)
-    if select is not None:
-        order = select.index_select(0, order)
+    order = by_shape if select is None else select.index_select(0, by_shape)
     tris = ScreenTriangles(
         pos=tris.pos.view(9, -1).index_select(1, order).view(3, 3, -1),
-        area=tris.area.index_select(0, order),
-        box=tris.box.index_select(1, order), face=tris.face.index_select(0, order),
-        batch=tris.batch.index_select(0, order))
+        area=tris.area.index_select(0, order), box=take_columns(box, by_shape),
+        face=tris.face.index_select(0, order), batch=tris.batch.index_select(0, order))
     runs, start = [], 0
     for key, count in zip(keys.tolist(), counts.tolist(), strict=True):
         if key != big_key:
@@ -264,6 +268,15 @@ def sort_by_block(tris: ScreenTriangles, resolution: tuple[int, int], tile: int,
         start += count
     n_small = start - (counts[-1].item() if keys.numel() and keys[-1].item() == big_key else 0)
     return tris, runs, n_small
+
+
+def take_columns(table: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """``table.index_select(1, index)`` of a 2-D ``table`` (rows, N) without autograd, one
+    1-D gather per row: 2-2.5x faster than the dim-1 gather for int64 on CPU (pixel boxes)."""
+    out = table.new_empty(table.shape[0], index.numel())
+    for k in range(table.shape[0]):
+        torch.index_select(table[k], 0, index, out=out[k])
+    return out
 
 
 def tested_boxes(box: torch.Tensor, resolution: tuple[int, int], tile: int) -> torch.Tensor:
@@ -312,7 +325,7 @@ def _bin_large(
     """Records for triangles larger than a tile: one per non-empty screen tile they touch."""
     h, w = resolution
     th, tw = min(tile, h), min(tile, w)
-    box = setup.box.index_select(1, big)
+    box = take_columns(setup.box, big)
     tx0, tx1 = box[0] // tile, box[1] // tile
     ty0, ty1 = box[2] // tile, box[3] // tile
     ntx = tx1 - tx0 + 1

@@ -45,6 +45,7 @@ from .binning import (
     plane_lower_bound,
     setup_triangles,
     sort_by_block,
+    take_columns,
     tested_boxes,
 )
 from .clip import ScreenTriangles, clip_and_project, outcodes, project
@@ -504,7 +505,7 @@ def _visible_subset(screen: ScreenTriangles, idx: torch.Tensor, keys: torch.Tens
     lo, hi = int(items.min()), int(items.max())  # a chunk's items are few: build only theirs
     pyramid = _key_pyramid(keys.view(b, h, w)[lo:hi + 1])
     x, y, z = screen.pos.view(9, -1).index_select(1, idx).view(3, 3, -1)
-    box = tested_boxes(screen.box.index_select(1, idx), (h, w), tile)
+    box = tested_boxes(take_columns(screen.box, idx), (h, w), tile)
     bound = depth_key(plane_lower_bound(depth_planes(x, y, z), box).clamp_(max=1.0))
     size = torch.maximum(box[1] - box[0], box[3] - box[2])  # box side - 1
     level = torch.zeros_like(size)
