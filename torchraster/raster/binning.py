@@ -163,7 +163,7 @@ def block_depth(coef: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch
 
 def _canonical_rotation(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor):
     """Rotate each triangle's vertex rows (3, N) so that row 0 is its lexicographically
-    smallest (x, y) vertex (ties: the earlier one)."""
+    smallest (x, y) vertex (ties: the earlier one); returns each as a tuple of 3 rows."""
     def before(i: int, j: int) -> torch.Tensor:
         return (x[i] < x[j]) | ((x[i] == x[j]) & (y[i] <= y[j]))
 
@@ -171,10 +171,10 @@ def _canonical_rotation(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor):
     first1 = ~first0 & before(1, 2)
     first2 = ~(first0 | first1)
 
-    def rotate(r: torch.Tensor) -> torch.Tensor:  # selects, not a gather: ~2x faster
-        return torch.stack([torch.where(first1, r[1], torch.where(first2, r[2], r[0])),
-                            torch.where(first1, r[2], torch.where(first2, r[0], r[1])),
-                            torch.where(first1, r[0], torch.where(first2, r[1], r[2]))])
+    def rotate(r: torch.Tensor) -> tuple[torch.Tensor, ...]:  # selects: ~2x a gather's speed
+        return (torch.where(first1, r[1], torch.where(first2, r[2], r[0])),
+                torch.where(first1, r[2], torch.where(first2, r[0], r[1])),
+                torch.where(first1, r[0], torch.where(first2, r[1], r[2])))
 
     return rotate(x), rotate(y), rotate(z)
 

@@ -120,19 +120,24 @@ def clip_and_project(
 
     sel = inside.nonzero().squeeze(1)
     corners = corners.view(-1, 3)
-    tri = screen_pos.view(-1, 3).index_select(0, corners.index_select(0, sel).view(-1))
-    tri = tri.view(-1, 3, 3)
+    # Gathered straight into the component-major layout (3, 3, N), one 1-D gather per
+    # component (vertex-major ids), instead of (N, 3, 3) rows and a transposing copy.
+    ids = corners.index_select(0, sel).T.reshape(-1)
+    flat = screen_pos.view(-1, 3)
+    pos = screen_pos.new_empty(3, ids.numel())
+    for k in range(3):
+        torch.index_select(flat[:, k], 0, ids, out=pos[k])
+    pos = pos.view(3, 3, -1)
     face_out, batch_out = face.index_select(0, sel), batch.index_select(0, sel)
     if bool(needs_clip.any()):
         sel = needs_clip.nonzero().squeeze(1)
         ctri = clip_pos.reshape(-1, 4).index_select(0, corners.index_select(0, sel).view(-1))
         ctri, cidx = _clip_polygons(ctri.view(-1, 3, 4))
-        tri = torch.cat([tri, project(ctri, resolution)])
+        pos = torch.cat([pos, project(ctri, resolution).permute(2, 1, 0)], dim=2)
         face_out = torch.cat([face_out, face[sel][cidx]])
         batch_out = torch.cat([batch_out, batch[sel][cidx]])
 
     h, w = resolution
-    pos = tri.permute(2, 1, 0).contiguous()  # (3, 3, N)
     x, y = pos[0], pos[1]
     # Twice the signed area in pixel space (y down): negative = CCW in NDC = front facing.
     area = (x[1] - x[0]) * (y[2] - y[0]) - (x[2] - x[0]) * (y[1] - y[0])
