@@ -35,6 +35,7 @@ import statistics
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 SUBDIV = {"5k": 4, "80k": 6, "1.3M": 8}
 
@@ -210,10 +211,26 @@ def rows_only(args) -> None:
                   flush=True)
 
 
-def run(spec: dict, pythonpath: str | None = None) -> dict:
+#: glibc (>= 2.35) tunable: malloc asks for transparent huge pages (madvise) on its mmapped
+#: chunks, so a fresh frame-sized buffer costs one page fault per 2 MB instead of per 4 KB.
+HUGETLB = {"GLIBC_TUNABLES": "glibc.malloc.hugetlb=1"}
+
+
+def hugetlb_available() -> bool:
+    """Whether :data:`HUGETLB` can take effect here: glibc >= 2.35 and THP not disabled."""
+    try:
+        version = os.confstr("CS_GNU_LIBC_VERSION") or ""
+        major, minor = (int(v) for v in version.split()[-1].split(".")[:2])
+        thp = Path("/sys/kernel/mm/transparent_hugepage/enabled").read_text()
+    except (ValueError, OSError, IndexError):
+        return False
+    return (major, minor) >= (2, 35) and "[never]" not in thp
+
+
+def run(spec: dict, pythonpath: str | None = None, extra_env: dict | None = None) -> dict:
     """Run ``worker(spec)`` in a fresh subprocess (clean peak-memory accounting), with
-    llvmpipe on as many threads as torch."""
-    env = {**os.environ, "LP_NUM_THREADS": str(spec["threads"])}
+    llvmpipe on as many threads as torch (and ``extra_env``, e.g. :data:`HUGETLB`)."""
+    env = {**os.environ, "LP_NUM_THREADS": str(spec["threads"]), **(extra_env or {})}
     if pythonpath:
         env["PYTHONPATH"] = os.pathsep.join([pythonpath, env.get("PYTHONPATH", "")])
     res = subprocess.run([sys.executable, __file__, "--worker", json.dumps(spec)],
@@ -254,6 +271,7 @@ def main() -> None:
 
     meshes = ["5k", "80k"] if args.quick else ["5k", "80k", "1.3M"]
     sizes = [256, 512] if args.quick else [256, 512, 1024]
+    hugetlb = hugetlb_available()
     rows, by_key = [], {}
     cases = [("frame", "82k frame", SUBDIV["80k"], 512, batch) for batch in (1, 8)]
     cases += [("sphere", name, SUBDIV[name], res, batch) for name in meshes for res in sizes
@@ -261,16 +279,31 @@ def main() -> None:
     for kind, name, subdiv, res, batch in cases:
         heavy = name == "1.3M" or res == 1024
         reps = max(3, args.repeats // 2) if heavy else args.repeats
-        r = run({"kind": kind, "subdiv": subdiv, "res": res, "batch": batch,
-                 "repeats": reps, "gl": True, "threads": args.threads})
+        spec = {"kind": kind, "subdiv": subdiv, "res": res, "batch": batch, "repeats": reps,
+                "gl": True, "threads": args.threads}
+        r = run(spec)
         by_key[(name, res, batch)] = r
         row = [name, f"{res}²", batch, r["ours_s"] * 1e3, r.get("gl_s", math.nan) * 1e3,
-               r.get("ratio", math.nan), r["peak_mb"], r["covered"]]
+               r.get("ratio", math.nan)]
+        if hugetlb:  # the same row with malloc on transparent huge pages, for both renderers
+            t = run(spec, extra_env=HUGETLB)
+            row += [t["ours_s"] * 1e3, t.get("gl_s", math.nan) * 1e3, t.get("ratio", math.nan)]
+        row += [r["peak_mb"], r["covered"]]
         rows.append(row)
         print(" | ".join(f"{v:.4g}" if isinstance(v, float) else str(v) for v in row),
               flush=True)
+    thp_cols = ["torchraster ms, THP", "llvmpipe ms, THP", "ratio, THP"] if hugetlb else []
     table = markdown_table(["faces", "resolution", "batch", "torchraster ms", "llvmpipe ms",
-                            "ratio", "peak MB", "covered"], rows)
+                            "ratio", *thp_cols, "peak MB", "covered"], rows)
+    thp_text = (
+        " *THP* columns: the same row in a process started with `GLIBC_TUNABLES="
+        "glibc.malloc.hugetlb=1` (glibc >= 2.35: malloc backs its large chunks with "
+        "transparent huge pages), for both renderers. A frame-sized buffer (keys, face ids, "
+        "barycentrics, the image) is fresh memory on every call, and its first touch costs one "
+        "page fault per 4 KB page: at 1024², batch 8, that is a quarter of our time on this "
+        "machine (a 64 MB `torch.full` takes 22 ms fresh, 3 ms refilled). Set the variable "
+        "for rendering jobs with large frames (README, Performance)."
+        if hugetlb else "")
     scaling = [["82k frame", "512²", by_key[("82k frame", 512, 8)]["ours_s"]
                 / by_key[("82k frame", 512, 1)]["ours_s"],
                 by_key[("82k frame", 512, 8)].get("gl_s", math.nan)
@@ -305,7 +338,7 @@ def main() -> None:
         "added over the process baseline. "
         f"llvmpipe: {gl.get('gl_renderer', 'n/a')}, LP_NUM_THREADS={gl.get('gl_threads', 'n/a')}"
         f"; load average at the end: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores."
-        f"\n\n{table}\n\nBatch scaling (time of batch 8 / batch 1; 8 = linear):\n\n"
+        f"{thp_text}\n\n{table}\n\nBatch scaling (time of batch 8 / batch 1; 8 = linear):\n\n"
         f"{scaling_table}\n\nPeak memory does not grow with triangle size: the same full-screen "
         "image at 1024², batch 2, drawn as a grid of 2 huge up to 131k tiny triangles "
         f"(binned into 16x16 tiles, chunks bounded by the memory budget):\n\n{big_table}\n"
