@@ -79,6 +79,26 @@ def projection_to_intrinsics(projection: torch.Tensor, resolution: tuple[int, in
     return torch.stack([fx, fy, cx, cy], dim=-1)
 
 
+def camera_intrinsics(projection: torch.Tensor | None, intrinsics: torch.Tensor | None,
+                      shape: tuple[int, int, int]) -> torch.Tensor:
+    """The checked pixel intrinsics (4,) or (B, 4) of a screen-space pass given exactly one
+    of an OpenGL ``projection`` (4, 4) / (B, 4, 4) or ``intrinsics``; ``shape`` = (B, H, W).
+    Raises ValueError naming the argument otherwise."""
+    b, h, w = shape
+    if (projection is None) == (intrinsics is None):
+        raise ValueError("projection, intrinsics: give exactly one of them")
+    if projection is not None:
+        if not isinstance(projection, torch.Tensor) or projection.shape not in ((4, 4),
+                                                                                (b, 4, 4)):
+            raise ValueError(f"projection: expected a (4, 4) or ({b}, 4, 4) tensor")
+        intrinsics = projection_to_intrinsics(projection, (h, w))
+    if not isinstance(intrinsics, torch.Tensor) or intrinsics.shape not in ((4,), (b, 4)):
+        raise ValueError(f"intrinsics: expected a (4,) or ({b}, 4) tensor of fx, fy, cx, cy")
+    if not bool(torch.isfinite(intrinsics).all()) or bool((intrinsics[..., :2] == 0).any()):
+        raise ValueError("intrinsics: must be finite with non-zero fx, fy")
+    return intrinsics
+
+
 def ssao(
     depth: torch.Tensor,
     normals: torch.Tensor,
@@ -195,18 +215,7 @@ class SSAO(nn.Module):
             raise ValueError("depth: contains NaN")
         if not self.enabled:
             return torch.ones_like(depth)
-        if (projection is None) == (intrinsics is None):
-            raise ValueError("projection, intrinsics: give exactly one of them")
-        if projection is not None:
-            if not isinstance(projection, torch.Tensor) or projection.shape not in (
-                (4, 4), (b, 4, 4)
-            ):
-                raise ValueError(f"projection: expected a (4, 4) or ({b}, 4, 4) tensor")
-            intrinsics = projection_to_intrinsics(projection, (h, w))
-        if not isinstance(intrinsics, torch.Tensor) or intrinsics.shape not in ((4,), (b, 4)):
-            raise ValueError(f"intrinsics: expected a (4,) or ({b}, 4) tensor of fx, fy, cx, cy")
-        if not bool(torch.isfinite(intrinsics).all()) or bool((intrinsics[..., :2] == 0).any()):
-            raise ValueError("intrinsics: must be finite with non-zero fx, fy")
+        intrinsics = camera_intrinsics(projection, intrinsics, (b, h, w))
         dt = compute_dtype(depth)
         ao = ssao(
             depth.to(dt), normals.to(dt), intrinsics.to(device=depth.device, dtype=dt),

@@ -72,7 +72,7 @@ from .._validate import check_tensor
 from ..numerics import compute_dtype, safe_normalize, smoothstep, specular_f0
 from ..shading.ibl import MIN_N_DOT_V, Environment, dfg_lut, lookup_dfg, shade_ibl
 from ..texture import build_mip_pyramid
-from .ssao import projection_to_intrinsics
+from .ssao import camera_intrinsics
 
 #: Screen-space nudge (pixels) along the ray's direction when finding the cell it is in, so a
 #: ray sitting exactly on a cell boundary is placed in the cell ahead.
@@ -561,17 +561,7 @@ class SSR(nn.Module):
                 z = image.new_zeros(b, 3, h, w)
                 return SSRMaps(image, z, image.new_zeros(b, 1, h, w), z)
             return image
-        if (projection is None) == (intrinsics is None):
-            raise ValueError("projection, intrinsics: give exactly one of them")
-        if projection is not None:
-            if not isinstance(projection, torch.Tensor) or projection.shape not in (
-                    (4, 4), (b, 4, 4)):
-                raise ValueError(f"projection: expected a (4, 4) or ({b}, 4, 4) tensor")
-            intrinsics = projection_to_intrinsics(projection, (h, w))
-        if not isinstance(intrinsics, torch.Tensor) or intrinsics.shape not in ((4,), (b, 4)):
-            raise ValueError(f"intrinsics: expected a (4,) or ({b}, 4) tensor of fx, fy, cx, cy")
-        if not bool(torch.isfinite(intrinsics).all()) or bool((intrinsics[..., :2] == 0).any()):
-            raise ValueError("intrinsics: must be finite with non-zero fx, fy")
+        intrinsics = camera_intrinsics(projection, intrinsics, (b, h, w))
         dt = compute_dtype(image)
         img = image.to(dt)
         with torch.no_grad():
