@@ -16,6 +16,7 @@ Rows are "<faces> <resolution> <batch>" as in ``bench_raster.py --rows`` (faces 
 from __future__ import annotations
 
 import argparse
+import atexit
 import importlib
 import shutil
 import statistics
@@ -30,6 +31,7 @@ from bench_raster import SUBDIV
 def load_renamed(src: Path, name: str):
     """Import the ``torchraster`` package found in ``src`` under the module name ``name``."""
     root = Path(tempfile.mkdtemp(prefix="ab_raster_"))
+    atexit.register(shutil.rmtree, root, True)
     shutil.copytree(src / "torchraster", root / name)
     for path in (root / name).rglob("*.py"):
         path.write_text(path.read_text().replace("torchraster", name))

@@ -149,6 +149,18 @@ STAGES = [("torchraster.renderer", "transform_points", "transform"),
           ("torchraster.renderer", "view_rays", "background rays")]
 
 
+def load_model():
+    """DamagedHelmet flattened: (mesh, face_material, materials, bounding-sphere centre
+    (3,), radius)."""
+    import torchraster as tr
+
+    mesh, face_material, materials = tr.load_scene(MODEL).flatten()
+    lo, hi = mesh.positions.amin(0), mesh.positions.amax(0)
+    center = (lo + hi) / 2
+    return mesh, face_material, materials, center, float(
+        (mesh.positions - center).norm(dim=-1).max())
+
+
 def profile_frame(label: str, source: str, threads: int, rows: int = 12) -> None:
     """Profile one 512², batch 1, no-shadow ``Renderer`` forward; print and write the
     ``frame-profile`` section (see the module docstring)."""
@@ -162,11 +174,7 @@ def profile_frame(label: str, source: str, threads: int, rows: int = 12) -> None
     import torchraster as tr
 
     torch.set_num_threads(threads)
-    scene = tr.load_scene(MODEL)
-    mesh, face_material, materials = scene.flatten()
-    lo, hi = mesh.positions.amin(0), mesh.positions.amax(0)
-    center = (lo + hi) / 2
-    radius = float((mesh.positions - center).norm(dim=-1).max())
+    mesh, face_material, materials, center, radius = load_model()
     lights = our_lights(center, radius, "none")
     renderer = tr.Renderer((512, 512), shading="pbr")
     view, proj, _ = cameras(1, center, radius)
@@ -239,11 +247,7 @@ def picture(threads: int, res: int = 256) -> None:
     import torchraster as tr
 
     torch.set_num_threads(threads)
-    scene = tr.load_scene(MODEL)
-    mesh, face_material, materials = scene.flatten()
-    lo, hi = mesh.positions.amin(0), mesh.positions.amax(0)
-    center = (lo + hi) / 2
-    radius = float((mesh.positions - center).norm(dim=-1).max())
+    mesh, face_material, materials, center, radius = load_model()
     view, proj, near = cameras(1, center, radius)
     with torch.no_grad():
         img = tr.Renderer((res, res), shading="pbr")(
@@ -296,11 +300,7 @@ def main() -> None:
     if args.picture:
         picture(args.threads)
         return
-    scene = tr.load_scene(MODEL)
-    mesh, face_material, materials = scene.flatten()
-    lo, hi = mesh.positions.amin(0), mesh.positions.amax(0)
-    center = (lo + hi) / 2
-    radius = float((mesh.positions - center).norm(dim=-1).max())
+    mesh, face_material, materials, center, radius = load_model()
 
     try:
         pyrender = load_pyrender()

@@ -77,7 +77,7 @@ def setup_triangles(tris: ScreenTriangles) -> TriangleSetup:
     # float32 rounding moved short edges by ~0.01 px (a crack between two faces whose
     # shared-edge centres fell outside the other face's pixel box). This form rounds
     # terms of size |A| |a| only: the edge moves by a few eps |a| pixels, which the pixel
-    # boxes absorb (clip.BOX_SLACK).
+    # boxes absorb (clip.box_slack).
     ec = torch.add(ea * ax, eb * ay).neg_().mul_(sign)
     ea.mul_(sign)
     eb.mul_(sign)
