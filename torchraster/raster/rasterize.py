@@ -158,7 +158,7 @@ class Fragments:
         if name not in self._cache:
             b, h, w = self.face_id.shape
             full = packed.new_full((b * h * w, *packed.shape[1:]), fill)
-            self._cache[name] = full.index_copy(0, self.pixels, packed).view(
+            self._cache[name] = full.index_copy_(0, self.pixels, packed).view(
                 b, h, w, *packed.shape[1:])
         return self._cache[name]
 
@@ -641,11 +641,10 @@ def covered_keys(setup: TriangleSetup, rec: Records, resolution: tuple[int, int]
         for e in range(3):
             edge = torch.ge(block_edge(coef, e, px, py), coef[EDGE_MIN][e])
             inside = edge if inside is None else inside.logical_and_(edge)
-    flat = inside.view(-1).nonzero().squeeze(1)
+    flat, pixel, r = record_pixels(setup, rec, inside, resolution)
     if flat.numel() == 0:
         return None
     depth = block_depth(coef, px, py).view(-1).index_select(0, flat)
-    pixel, r = record_pixels(setup, rec, flat, resolution)
     return pixel, depth_key(depth.clamp_(-1.0, 1.0)) | rec.take(setup.key_lo).index_select(0, r)
 
 
@@ -657,18 +656,21 @@ def record_centres(rec: Records, dtype: torch.dtype) -> tuple[torch.Tensor, torc
     return px, py
 
 
-def record_pixels(setup: TriangleSetup, rec: Records, flat: torch.Tensor,
-                  resolution: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
-    """Flat frame pixel index b*H*W + y*W + x (M,) and record index r (M,) of candidates
-    ``flat`` (M,) = local * R + r of a (kh, kw, R) candidate layout."""
+def record_pixels(setup: TriangleSetup, rec: Records, hits: torch.Tensor,
+                  resolution: tuple[int, int]
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The True candidates of ``hits`` (kh, kw, R) (a chunk of records' candidates):
+    their flat candidate index local * R + r (M,), flat frame pixel index b*H*W + y*W + x
+    (M,) and record index r (M,)."""
     h, w = resolution
     n_rec = rec.x0.numel()
-    local = floor_div_exact(flat, n_rec)
-    r = flat - local * n_rec
-    offsets = (torch.arange(rec.kh, device=flat.device)[:, None] * w
-               + torch.arange(rec.kw, device=flat.device)).view(-1)
+    # A 2-D nonzero yields (local, r) directly: cheaper than dividing the flat index.
+    local, r = hits.view(-1, n_rec).nonzero().unbind(1)
+    offsets = (torch.arange(rec.kh, device=hits.device)[:, None] * w
+               + torch.arange(rec.kw, device=hits.device)).view(-1)
     base = rec.take(setup.batch) * (h * w) + rec.y0 * w + rec.x0
-    return base.index_select(0, r) + offsets.index_select(0, local), r
+    flat = torch.add(r, local, alpha=n_rec)
+    return flat, base.index_select(0, r) + offsets.index_select(0, local), r
 
 
 def insert_layers(layers: torch.Tensor, pixel: torch.Tensor, key: torch.Tensor) -> None:
@@ -728,11 +730,11 @@ def _fragments_from_keys(clip_pos, faces, keys, shape, derivatives) -> Fragments
     b, h, w = shape
     n_faces = faces.shape[0]
     dev = keys.device
-    pixels = (keys != EMPTY_KEY).nonzero().squeeze(1)
+    covered = keys != EMPTY_KEY
+    pixels = covered.nonzero().squeeze(1)
     n = pixels.numel()
-    face = keys.index_select(0, pixels).bitwise_and_(0xFFFFFFFF)
-    face_id = torch.full((b * h * w,), -1, dtype=torch.int64, device=dev)
-    face_id.index_copy_(0, pixels, face)
+    # keys (this call's buffer) becomes face_id in place: its pages are already mapped.
+    face_id = keys.bitwise_and_(0xFFFFFFFF).masked_fill_(covered.logical_not_(), -1)
 
     # Visible (item, face) pairs, a table row each (item by item: the pixels of an item are
     # one contiguous run), and one reference pixel per row.
@@ -744,7 +746,7 @@ def _fragments_from_keys(clip_pos, faces, keys, shape, derivatives) -> Fragments
         s0, s1 = starts[item], starts[item + 1]
         if s0 == s1:
             continue
-        f = face[s0:s1]
+        f = face_id.index_select(0, pixels[s0:s1])  # per item: a smaller fresh buffer
         visible.index_fill_(0, f, True)
         vis = visible.nonzero().squeeze(1)
         index = torch.cumsum(visible, 0, dtype=torch.int64 if n_faces >= 2**31 else torch.int32)
@@ -753,8 +755,8 @@ def _fragments_from_keys(clip_pos, faces, keys, shape, derivatives) -> Fragments
         row_face.append(vis)
         row_item.append(torch.full_like(vis, item))
         count += vis.numel()
-    row_face = torch.cat(row_face) if row_face else face.new_zeros(0)
-    row_item = torch.cat(row_item) if row_item else face.new_zeros(0)
+    row_face = torch.cat(row_face) if row_face else pixels.new_zeros(0)
+    row_item = torch.cat(row_item) if row_item else pixels.new_zeros(0)
     ref = torch.full((count,), b * h * w, dtype=torch.int64, device=dev)
     ref.scatter_reduce_(0, rows, pixels, "amin")  # the face's first covered pixel
     clip_t = clip_pos.permute(2, 0, 1).reshape(4, -1)

@@ -295,12 +295,12 @@ class SoftCoverage(Coverage):
                 closer = d2 < best
                 best = torch.where(closer, d2, best)
                 shift = torch.where(closer, dz, shift)
-        flat = (inside | (best <= self.cutoff2)).view(-1).nonzero().squeeze(1)
+        flat, pixel, r = record_pixels(setup, rec, inside | (best <= self.cutoff2),
+                                       resolution)
         if flat.numel() == 0:
             return None
         depth = block_depth(coef, px, py).view(-1).index_select(0, flat)
         shift = torch.where(inside, 0.0, shift).view(-1).index_select(0, flat)
-        pixel, r = record_pixels(setup, rec, flat, resolution)
         key = depth_key((depth + shift).clamp_(-1.0, 1.0))
         return pixel, key | rec.take(setup.key_lo).index_select(0, r)
 
