@@ -3,9 +3,9 @@
 Every screen triangle becomes one or more *records*: a block of kh x kw pixel centres at
 (x0, y0) whose coverage is tested by :func:`torchraster.raster.rasterize.covered_keys`.
 
-* Small triangles (bounding box at most ``tile`` pixels wide and high) get one block of the
-  next power-of-two size that holds their box, so a 2x3-pixel triangle tests 2x4 centres,
-  not a whole tile.
+* Small triangles (bounding box at most ``tile`` pixels wide and high) get one square
+  block of the next :func:`block_sizes` side that holds their box, so a 2x3-pixel
+  triangle tests 4x4 centres, not a whole tile.
 * Large triangles are binned to the ``tile x tile`` screen tiles their box touches; tiles
   that an edge function proves empty are dropped, so work follows covered area.
 
@@ -204,16 +204,20 @@ class Records:
 
 
 def block_sizes(tile: int) -> list[int]:
-    """Block edge lengths for small triangles: 1, 2, 4, 8, ... (powers of two) and ``tile``.
+    """Block edge lengths for small triangles: 1, 2, 4, 6, 8, 12, 16, ... (powers of two
+    and, from 4 up, 1.5 times them) and ``tile``.
 
-    Finer steps (1.5x) waste fewer candidates (about 1.2x instead of 1.4x per axis) but
-    double the number of block shapes, hence of launches; at 256² - 512², batch 1, the
-    launches cost more (measured 25-35 % slower, scripts/bench_raster.py rows). Blocks
-    are square for the same reason (:func:`_block_shapes`).
+    Blocks are square (:func:`_block_shapes`), so each size is one shape, one run of
+    launches. With per-axis shapes, 1.5x steps had doubled the shapes and measured 25-35 %
+    slower at 256² - 512², batch 1; with square blocks they are neutral at 512² and up and
+    7-15 % faster at 256², batch 1 (scripts/ab_raster.py, in turns), where 10 % of the
+    16x16 blocks' centres were covered.
     """
     sizes, s = {tile}, 1
     while s < tile:
         sizes.add(s)
+        if s >= 4 and s * 3 // 2 < tile:
+            sizes.add(s * 3 // 2)
         s *= 2
     return sorted(sizes)
 
