@@ -103,7 +103,7 @@ def test_occlusion_culling_changes_nothing(case: str, monkeypatch) -> None:
         clip = clip.float()
         res = (37, 45)
     monkeypatch.setattr(rasterize_module, "OCCLUSION_CULLING", True)
-    monkeypatch.setattr(rasterize_module, "OCCLUSION_MIN_CANDIDATES", 0)  # even small scenes
+    monkeypatch.setattr(rasterize_module, "OCCLUSION_MIN_WORK", 0)  # even small scenes
     with_cull = _keys(clip, faces, res, tile=tile)
     frags = tr.rasterize(clip, faces, res, tile=tile)
     depth = tr.raster.rasterize_depth(clip, faces, res, tile=tile)
@@ -162,7 +162,7 @@ def test_ragged_pass_equals_block_passes(case: str, monkeypatch) -> None:
 
 def test_occlusion_culling_skips_hidden_back_faces(monkeypatch) -> None:
     """On a closed sphere most back faces are proven hidden and never binned (when their
-    boxes hold enough centres to pay for the test: rasterize.OCCLUSION_MIN_CANDIDATES)."""
+    boxes hold enough centres to pay for the test: rasterize.OCCLUSION_MIN_WORK)."""
     clip, faces, _ = _sphere_clip(b=1, subdiv=4)
     seen = {}
     orig = rasterize_module._visible_subset
