@@ -6,12 +6,15 @@ reports the median time of repeated calls, the peak resident memory the calls ad
 in the same process and run, the median time of llvmpipe (OpenGL on the CPU via moderngl,
 ``torchraster/testing/llvmpipe.py``) on the identical clip-space input, from arrays to
 arrays. The two are timed in turns (ours, llvmpipe, ours, ...) so load from other processes
-hits both alike; the ratio column is the median of the per-turn ratios. The *frame* rows
+hits both alike; a process's ratio is the median of its per-turn ratios. Each configuration
+runs in ``--rounds`` processes (interleaved over the configurations); the table gives the
+medians over them and the range of the ratio. The *frame* rows
 are the frame of issue 10: an 82k-face icosphere at distance 2.6 (fov 45°) from random
 viewpoints, filling ~80 % of the frame. A second table keeps the triangle count fixed and
 grows the triangles: peak memory must stay flat.
 
-    python scripts/bench_raster.py              # full table (~10 min on 2 cores)
+    python scripts/bench_raster.py              # full table, 3 rounds (~15 min on 2 cores)
+    python scripts/bench_raster.py --thp        # ... and each row with malloc on huge pages
     python scripts/bench_raster.py --threads 1  # torch and llvmpipe on one thread each
     python scripts/bench_raster.py --quick      # a few rows
     python scripts/bench_raster.py --rows "5k 256 1" "82k frame 512 8" --before-src /tmp/before
@@ -216,6 +219,20 @@ def rows_only(args) -> None:
 HUGETLB = {"GLIBC_TUNABLES": "glibc.malloc.hugetlb=1"}
 
 
+def combine_rounds(found: list[dict]) -> dict:
+    """One row from the per-process results of its rounds: medians of the times and
+    ratios, the range of the ratios, the largest peak memory."""
+    out = {"ours_s": statistics.median(r["ours_s"] for r in found),
+           "peak_mb": max(r["peak_mb"] for r in found), "covered": found[0]["covered"]}
+    if all("ratio" in r for r in found):
+        ratios = [r["ratio"] for r in found]
+        out.update(gl_s=statistics.median(r["gl_s"] for r in found),
+                   ratio=statistics.median(ratios),
+                   ratio_range=f"{min(ratios):.2f}-{max(ratios):.2f}",
+                   gl_threads=found[0]["gl_threads"], gl_renderer=found[0]["gl_renderer"])
+    return out
+
+
 def hugetlb_available() -> bool:
     """Whether :data:`HUGETLB` can take effect here: glibc >= 2.35 and THP not disabled."""
     try:
@@ -245,6 +262,12 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=os.cpu_count() or 1,
                     help="torch intra-op threads and LP_NUM_THREADS of llvmpipe (default: "
                          "all cores)")
+    ap.add_argument("--rounds", type=int, default=3,
+                    help="fresh processes per row of the main table, interleaved over the "
+                         "rows (medians over them, and the range of the ratio)")
+    ap.add_argument("--thp", action="store_true",
+                    help="also time every row (one round) with malloc on transparent huge "
+                         "pages (GLIBC_TUNABLES=glibc.malloc.hugetlb=1)")
     ap.add_argument("--profile", action="store_true",
                     help="write the profile section (82k frame, 512², batch 8) instead")
     ap.add_argument("--before-src", help="with --profile: a directory holding an older "
@@ -271,20 +294,30 @@ def main() -> None:
 
     meshes = ["5k", "80k"] if args.quick else ["5k", "80k", "1.3M"]
     sizes = [256, 512] if args.quick else [256, 512, 1024]
-    hugetlb = hugetlb_available()
-    rows, by_key = [], {}
+    hugetlb = args.thp and hugetlb_available()
     cases = [("frame", "82k frame", SUBDIV["80k"], 512, batch) for batch in (1, 8)]
     cases += [("sphere", name, SUBDIV[name], res, batch) for name in meshes for res in sizes
               for batch in (1, 8)]
+    specs = {}
     for kind, name, subdiv, res, batch in cases:
         heavy = name == "1.3M" or res == 1024
-        reps = max(3, args.repeats // 2) if heavy else args.repeats
-        spec = {"kind": kind, "subdiv": subdiv, "res": res, "batch": batch, "repeats": reps,
-                "gl": True, "threads": args.threads}
-        r = run(spec)
-        by_key[(name, res, batch)] = r
-        row = [name, f"{res}²", batch, r["ours_s"] * 1e3, r.get("gl_s", math.nan) * 1e3,
-               r.get("ratio", math.nan)]
+        specs[(name, res, batch)] = {
+            "kind": kind, "subdiv": subdiv, "res": res, "batch": batch, "gl": True,
+            "repeats": max(3, args.repeats // 2) if heavy else args.repeats,
+            "threads": args.threads}
+    # Rounds interleaved over the rows: a slow phase of the shared machine (minutes long)
+    # then hits every row once instead of all the rounds of one row.
+    runs = {key: [] for key in specs}
+    for k in range(args.rounds):
+        for key, spec in specs.items():
+            runs[key].append(run(spec))
+            print(f"round {k + 1}/{args.rounds}", *key, runs[key][-1], flush=True)
+    by_key = {key: combine_rounds(found) for key, found in runs.items()}
+    rows = []
+    for key, spec in specs.items():
+        r = by_key[key]
+        row = [key[0], f"{key[1]}²", key[2], r["ours_s"] * 1e3, r.get("gl_s", math.nan) * 1e3,
+               r.get("ratio", math.nan), r.get("ratio_range", "n/a")]
         if hugetlb:  # the same row with malloc on transparent huge pages, for both renderers
             t = run(spec, extra_env=HUGETLB)
             row += [t["ours_s"] * 1e3, t.get("gl_s", math.nan) * 1e3, t.get("ratio", math.nan)]
@@ -294,15 +327,11 @@ def main() -> None:
               flush=True)
     thp_cols = ["torchraster ms, THP", "llvmpipe ms, THP", "ratio, THP"] if hugetlb else []
     table = markdown_table(["faces", "resolution", "batch", "torchraster ms", "llvmpipe ms",
-                            "ratio", *thp_cols, "peak MB", "covered"], rows)
+                            "ratio", "ratio range", *thp_cols, "peak MB", "covered"], rows)
     thp_text = (
-        " *THP* columns: the same row in a process started with `GLIBC_TUNABLES="
-        "glibc.malloc.hugetlb=1` (glibc >= 2.35: malloc backs its large chunks with "
-        "transparent huge pages), for both renderers. A frame-sized buffer (keys, face ids, "
-        "barycentrics, the image) is fresh memory on every call, and its first touch costs one "
-        "page fault per 4 KB page: at 1024², batch 8, that is a quarter of our time on this "
-        "machine (a 64 MB `torch.full` takes 22 ms fresh, 3 ms refilled). Set the variable "
-        "for rendering jobs with large frames (README, Performance)."
+        " *THP* columns (`--thp`, one round): the same row in a process started with "
+        "`GLIBC_TUNABLES=glibc.malloc.hugetlb=1` (glibc >= 2.35: malloc backs its large "
+        "chunks with transparent huge pages), for both renderers (README, Speed on CPU)."
         if hugetlb else "")
     scaling = [["82k frame", "512²", by_key[("82k frame", 512, 8)]["ours_s"]
                 / by_key[("82k frame", 512, 1)]["ours_s"],
@@ -332,10 +361,14 @@ def main() -> None:
         "in either rasterizer; *82k frame*: the frame of issue 10, the 82k-face icosphere at "
         "distance 2.6 from random viewpoints (filling ~80 % of the frame). llvmpipe gets the "
         "identical clip-space input and returns face ids + interpolated normals to numpy "
-        "(upload, draw, read back: `torchraster/testing/llvmpipe.py`). Medians of repeated "
-        "calls after a warm-up, ours and llvmpipe timed in turns; *ratio* = median of the "
-        "per-turn ratios; each row in its own process; peak MB = resident memory the calls "
-        "added over the process baseline. "
+        "(upload, draw, read back: `torchraster/testing/llvmpipe.py`). In each process: "
+        "medians of repeated calls after a warm-up, ours and llvmpipe timed in turns, and "
+        "the median of the per-turn ratios. Every row runs in "
+        f"{args.rounds} fresh process{'es' * (args.rounds > 1)} (rounds interleaved over "
+        "the rows); the table gives the medians over them, and *ratio range* the lowest and "
+        "highest per-process ratio: on this shared machine a row's ratio moves by 10-30 % "
+        "between processes minutes apart. Peak MB = resident memory the calls added over the "
+        "process baseline. "
         f"llvmpipe: {gl.get('gl_renderer', 'n/a')}, LP_NUM_THREADS={gl.get('gl_threads', 'n/a')}"
         f"; load average at the end: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores."
         f"{thp_text}\n\n{table}\n\nBatch scaling (time of batch 8 / batch 1; 8 = linear):\n\n"
