@@ -7,6 +7,8 @@
 * :func:`compute_dtype` / :func:`finish_low_precision`: the half-precision policy: float16
   and bfloat16 inputs are evaluated in float32 and cast back, saturated to the finite range
   (Filament's ``saturateMediump``), so low-precision inputs never produce Inf.
+* :func:`take_columns`: ``table.index_select(1, index)`` of a 2-D table as one 1-D gather
+  per row (the fast gather on CPU).
 * :func:`floor_div_exact`: integer floor division of non-negative indices through float64
   (faster than int64 division on CPU), exact within its stated bound.
 """
@@ -133,8 +135,20 @@ def floor_div_exact(a: torch.Tensor, d: int) -> torch.Tensor:
     return ((a.to(torch.float64) + 0.5) * (1.0 / d)).long()
 
 
+def take_columns(table: torch.Tensor, index: torch.Tensor,
+                 out: torch.Tensor | None = None) -> torch.Tensor:
+    """``table.index_select(1, index)`` of a 2-D ``table`` (rows, N), written into ``out``
+    (rows, len(index)) when given, as one 1-D gather per row: several times faster than the
+    dim-1 gather on CPU (2-2.5x for int64 pixel boxes). Not differentiable (``out=``)."""
+    if out is None:
+        out = table.new_empty(table.shape[0], index.numel())
+    for k in range(table.shape[0]):
+        torch.index_select(table[k], 0, index, out=out[k])
+    return out
+
+
 __all__ = [
     "DIELECTRIC_F0", "FLOOR_DIV_EXACT_LIMIT", "LOW_PRECISION", "NORMALIZE_EPS",
     "compute_dtype", "diffuse_color", "dot", "finish_low_precision", "floor_div_exact",
-    "safe_normalize", "specular_f0",
+    "safe_normalize", "specular_f0", "take_columns",
 ]

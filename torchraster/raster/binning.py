@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ..numerics import take_columns
 from .clip import ScreenTriangles
 
 # Rows of TriangleSetup.coef, defined once: the per-triangle table is read by name only.
@@ -226,9 +227,9 @@ def _block_shapes(box: torch.Tensor, resolution: tuple[int, int], tile: int):
     """(small (N,) bool, kh (N,), kw (N,)) of pixel boxes (4, N): whether a triangle gets
     one block (box at most ``tile`` wide and high) and that block's edge lengths: the
     :func:`block_sizes` side of the box's longer edge, for both (clamped to the frame).
-    Square blocks give 5 shapes instead of up to 25: 3-16 % faster on the six
-    scripts/bench_raster.py rows compared (scripts/ab_raster.py): the launches saved
-    outweigh the extra tested centres."""
+    One shape per size instead of one per (kh, kw) pair: with power-of-two sizes, 3-16 %
+    faster on the six scripts/bench_raster.py rows compared (scripts/ab_raster.py), the
+    launches saved outweighing the extra tested centres."""
     h, w = resolution
     bw = box[1] - box[0] + 1
     bh = box[3] - box[2] + 1
@@ -275,15 +276,6 @@ def sort_by_block(tris: ScreenTriangles, resolution: tuple[int, int], tile: int,
         start += count
     n_small = start - (counts[-1].item() if keys.numel() and keys[-1].item() == big_key else 0)
     return tris, runs, n_small
-
-
-def take_columns(table: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-    """``table.index_select(1, index)`` of a 2-D ``table`` (rows, N) without autograd, one
-    1-D gather per row: 2-2.5x faster than the dim-1 gather for int64 on CPU (pixel boxes)."""
-    out = table.new_empty(table.shape[0], index.numel())
-    for k in range(table.shape[0]):
-        torch.index_select(table[k], 0, index, out=out[k])
-    return out
 
 
 def tested_boxes(box: torch.Tensor, resolution: tuple[int, int], tile: int) -> torch.Tensor:

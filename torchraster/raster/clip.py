@@ -23,6 +23,8 @@ from dataclasses import dataclass
 
 import torch
 
+from ..numerics import take_columns
+
 GUARD_BAND = 8.0  # clip |x|, |y| to GUARD_BAND * w: triangles stay within ~8 viewports
 MAX_POLY = 9  #: a triangle clipped by the 6 planes has at most 3 + 6 vertices
 
@@ -123,11 +125,7 @@ def clip_and_project(
     # Gathered straight into the component-major layout (3, 3, N), one 1-D gather per
     # component (vertex-major ids), instead of (N, 3, 3) rows and a transposing copy.
     ids = corners.index_select(0, sel).T.reshape(-1)
-    flat = screen_pos.view(-1, 3)
-    pos = screen_pos.new_empty(3, ids.numel())
-    for k in range(3):
-        torch.index_select(flat[:, k], 0, ids, out=pos[k])
-    pos = pos.view(3, 3, -1)
+    pos = take_columns(screen_pos.view(-1, 3).T, ids).view(3, 3, -1)
     face_out, batch_out = face.index_select(0, sel), batch.index_select(0, sel)
     if bool(needs_clip.any()):
         sel = needs_clip.nonzero().squeeze(1)

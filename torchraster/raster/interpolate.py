@@ -12,7 +12,8 @@ from typing import NamedTuple
 import torch
 
 from .._validate import check_tensor
-from .rasterize import PIXEL_CHUNK, Fragments, gather_rows, pixel_slices
+from ..numerics import take_columns
+from .rasterize import PIXEL_CHUNK, Fragments, pixel_slices
 
 
 def to_image(packed: torch.Tensor, frags: Fragments, fill: float = 0.0) -> torch.Tensor:
@@ -82,7 +83,7 @@ class _Weigh(torch.autograd.Function):
         flat = table.view(three * n_chan, -1)
         for sl in pixel_slices(n):
             m = sl.stop - sl.start
-            g = gather_rows(flat, rows[sl], buf[:, :m]).view(three, n_chan, m)
+            g = take_columns(flat, rows[sl], buf[:, :m]).view(three, n_chan, m)
             wt = weights[:, sl]
             dest = out[:, sl] if not frame else val[:, :m]
             torch.mul(g[0], wt[0], out=dest).addcmul_(g[1], wt[1]).addcmul_(g[2], wt[2])

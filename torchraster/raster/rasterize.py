@@ -24,7 +24,7 @@ from collections.abc import Iterator
 import torch
 
 from .._validate import check_frame_memory, check_resolution, check_tensor
-from ..numerics import floor_div_exact
+from ..numerics import floor_div_exact, take_columns
 from .binning import (
     DZDX,
     DZDY,
@@ -45,7 +45,6 @@ from .binning import (
     plane_lower_bound,
     setup_triangles,
     sort_by_block,
-    take_columns,
     tested_boxes,
 )
 from .clip import ScreenTriangles, clip_and_project, outcodes, project
@@ -833,8 +832,8 @@ class _PixelPass(torch.autograd.Function):
         for sl in pixel_slices(n):
             m = sl.stop - sl.start
             r = rows[sl]
-            gather = gather_rows(sub, r, g[:, :m])
-            ref_g = gather_rows(ref, r, gr[:, :m])
+            gather = take_columns(sub, r, g[:, :m])
+            ref_g = take_columns(ref, r, gr[:, :m])
             col, row = _pixel_coords(pixels[sl], *resolution)
             du = col.to(dt).sub_(ref_g[0])
             dv = row.to(dt).sub_(ref_g[1])
@@ -914,14 +913,6 @@ def _bary_row_grads(table, r, du, dv, inv, b, gb, g_dd, dd):
     if FT_B.start in contrib:
         gbb = gbb + contrib[FT_B.start]
     return [(FT_L, gl), (FT_A, ga), (FT_B, gbb)]
-
-
-def gather_rows(table: torch.Tensor, index: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
-    """``table.index_select(1, index)`` written into ``out`` (rows, len(index)), one 1-D
-    gather per row (several times faster than a strided 2-D gather on CPU)."""
-    for k in range(table.shape[0]):
-        torch.index_select(table[k], 0, index, out=out[k])
-    return out
 
 
 def pixel_slices(n: int) -> list[slice]:
