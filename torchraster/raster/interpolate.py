@@ -78,12 +78,13 @@ class _Weigh(torch.autograd.Function):
         weights = weights.to(table.dtype)
         out = table.new_zeros(n_chan, frame) if frame else table.new_empty(n_chan, n)
         c = min(n, PIXEL_CHUNK)
-        buf = table.new_empty(three * n_chan, c)
+        buf = table.new_empty(three * n_chan * c)  # flat: contiguous chunk views
         val = table.new_empty(n_chan, c) if frame else None
         flat = table.view(three * n_chan, -1)
         for sl in pixel_slices(n):
             m = sl.stop - sl.start
-            g = take_columns(flat, rows[sl], buf[:, :m]).view(three, n_chan, m)
+            g = take_columns(flat, rows[sl], buf[:three * n_chan * m].view(-1, m))
+            g = g.view(three, n_chan, m)
             wt = weights[:, sl]
             dest = out[:, sl] if not frame else val[:, :m]
             torch.mul(g[0], wt[0], out=dest).addcmul_(g[1], wt[1]).addcmul_(g[2], wt[2])

@@ -826,14 +826,14 @@ class _PixelPass(torch.autograd.Function):
         uv = table.new_empty(2, n) if keep else None
         inv_s = table.new_empty(n) if keep and not depth else None
         c = min(n, PIXEL_CHUNK)
-        g = table.new_empty(sub.shape[0], c)
-        gr = table.new_empty(2, c)
+        g = table.new_empty(sub.shape[0] * c)  # flat: every chunk's (rows, m) view is
+        gr = table.new_empty(2 * c)  # contiguous (take_columns' fast float32 gather)
         inv_buf = table.new_empty(c)
         for sl in pixel_slices(n):
             m = sl.stop - sl.start
             r = rows[sl]
-            gather = take_columns(sub, r, g[:, :m])
-            ref_g = take_columns(ref, r, gr[:, :m])
+            gather = take_columns(sub, r, g[:sub.shape[0] * m].view(-1, m))
+            ref_g = take_columns(ref, r, gr[:2 * m].view(2, m))
             col, row = _pixel_coords(pixels[sl], *resolution)
             du = col.to(dt).sub_(ref_g[0])
             dv = row.to(dt).sub_(ref_g[1])
