@@ -141,9 +141,9 @@ def block_edge(coef: torch.Tensor, e: int, px: torch.Tensor, py: torch.Tensor) -
     """Edge function e of R triangles (``coef`` (rows, R)) at a (kh, kw, R) block of pixel
     centres px (kw, R), py (kh, R): A x + (B y + C), always in this order of float ops, so
     shared edges get exactly opposite values (compare with ``coef[EDGE_MIN][e]``)."""
-    ex = coef[EDGE_A][e] * px
-    ey = coef[EDGE_B][e] * py + coef[EDGE_C][e]
-    return torch.add(ey[:, None, :], ex[None, :, :])
+    ex = coef[EDGE_A.start + e] * px
+    ey = (coef[EDGE_B.start + e] * py).add_(coef[EDGE_C.start + e])
+    return torch.add(ey.unsqueeze(1), ex)
 
 
 def block_edges(coef: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
@@ -158,8 +158,8 @@ def block_depth(coef: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch
     """Depth planes of R triangles at a (kh, kw, R) block of pixel centres (see
     :func:`block_edge`): z0 + dzdx (x - x0) + dzdy (y - y0)."""
     zx = coef[DZDX] * (px - coef[REF_X])
-    zy = coef[REF_Z] + coef[DZDY] * (py - coef[REF_Y])
-    return torch.add(zy[:, None, :], zx[None, :, :])
+    zy = (coef[DZDY] * (py - coef[REF_Y])).add_(coef[REF_Z])  # z0 + ..., commuted: exact
+    return torch.add(zy.unsqueeze(1), zx)
 
 
 def _canonical_rotation(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor):

@@ -645,7 +645,7 @@ def covered_keys(setup: TriangleSetup, rec: Records, resolution: tuple[int, int]
     else:  # many: one edge at a time keeps the temporaries in cache
         inside = None
         for e in range(3):
-            edge = torch.ge(block_edge(coef, e, px, py), coef[EDGE_MIN][e])
+            edge = torch.ge(block_edge(coef, e, px, py), coef[EDGE_MIN.start + e])
             inside = edge if inside is None else inside.logical_and_(edge)
     flat, pixel, r = record_pixels(setup, rec, inside, resolution)
     if flat.numel() == 0:
@@ -739,8 +739,10 @@ def _fragments_from_keys(clip_pos, faces, keys, shape, derivatives) -> Fragments
     covered = keys != EMPTY_KEY
     pixels = covered.nonzero().squeeze(1)
     n = pixels.numel()
-    # keys (this call's buffer) becomes face_id in place: its pages are already mapped.
-    face_id = keys.bitwise_and_(0xFFFFFFFF).masked_fill_(covered.logical_not_(), -1)
+    # keys (this call's buffer) becomes face_id in place: its pages are already mapped. The
+    # low half sign-extended is the face (< 2**31), and -1 for EMPTY_KEY (low half all
+    # ones): two in-place shifts, a third of the time of a mask and a masked fill.
+    face_id = keys.bitwise_left_shift_(32).bitwise_right_shift_(32)
 
     # Visible (item, face) pairs, a table row each (item by item: the pixels of an item are
     # one contiguous run), and one reference pixel per row.

@@ -50,7 +50,6 @@ from .binning import (
 from .clip import MAX_POLY, ScreenTriangles, clip_polygons, outcodes
 from .rasterize import (
     DEFAULT_MEMORY_BUDGET,
-    EMPTY_KEY,
     Coverage,
     check_inputs,
     check_layers,
@@ -311,7 +310,7 @@ def _soft_pass(clip_pos, faces, keys, shape, memory_budget):
     b, h, w = shape
     k, n_pix = keys.shape
     dtype = clip_pos.dtype
-    face_kp = torch.where(keys == EMPTY_KEY, -1, keys & 0xFFFFFFFF)  # (K, P)
+    face_kp = (keys << 32) >> 32  # (K, P) low half sign-extended: -1 for EMPTY_KEY
     face_kp = _drop_repeated_faces(face_kp, clip_pos, faces)
     face_id = face_kp.T.contiguous()  # (P, K)
     slot = (face_id >= 0).view(-1).nonzero().squeeze(1)  # p * K + k
