@@ -361,3 +361,29 @@ def test_fused_and_per_edge_tests_agree(dtype: torch.dtype, monkeypatch) -> None
                                                        2**20, 320)
         assert torch.equal(keys["fused"], keys["per_edge"])
         assert (keys["fused"] != rasterize_module.EMPTY_KEY).sum() > 200
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.int64])
+@pytest.mark.parametrize("layout", ["contiguous", "transposed"])
+def test_take_columns_never_copies_the_table(dtype: torch.dtype, layout: str) -> None:
+    """take_columns equals index_select(1, ...) and copies only the columns it takes: a
+    transposed (non-contiguous) table must not be copied whole per call (torch's float32
+    dim-1 gather does that internally; it made 1.3M faces at batch 8 3.5x slower, as
+    clipping gathers from the (3, B*V) screen table once per triangle chunk)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    from torchraster.numerics import take_columns
+
+    n = 5000
+    table = (torch.randn(n, 3) * 100).to(dtype)
+    table = table.T if layout == "transposed" else table.T.contiguous()
+    index = torch.tensor([4999, 0, 17, 17, 2500])
+    with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
+        got = take_columns(table, index)
+        got_out = take_columns(table, index, torch.empty(3, 5, dtype=dtype))
+    expected = table.index_select(1, index)
+    assert torch.equal(got, expected) and torch.equal(got_out, expected)
+    copies = [(e.name, e.input_shapes) for e in prof.events()
+              if e.name in ("aten::clone", "aten::copy_", "aten::contiguous")
+              and any(math.prod(shape) >= n for shape in e.input_shapes if shape)]
+    assert not copies, copies

@@ -140,14 +140,15 @@ def take_columns(table: torch.Tensor, index: torch.Tensor,
     """``table.index_select(1, index)`` of a 2-D ``table`` (rows, N), written into ``out``
     (rows, len(index)) when given. Not differentiable (``out=``).
 
-    float32 into a contiguous ``out``: one dim-1 gather (torch's contiguous float32 fast
-    path, 0.4-0.75x the time of per-row gathers for 4-20 rows); any other dtype or layout:
-    one 1-D gather per row (the dim-1 gather of other dtypes copies element by element with
-    memcpy: 3-5x slower for int64 pixel boxes and float64).
+    A contiguous float32 ``table`` into a contiguous ``out``: one dim-1 gather (torch's
+    contiguous float32 fast path, 0.4-0.75x the time of per-row gathers for 4-20 rows);
+    anything else: one 1-D gather per row (the dim-1 gather of other dtypes copies element
+    by element with memcpy, 3-5x slower for int64 pixel boxes and float64, and it first
+    copies a non-contiguous table whole: per call, however few columns are taken).
     """
     if out is None:
         out = table.new_empty(table.shape[0], index.numel())
-    if table.dtype == torch.float32 and out.is_contiguous():
+    if table.dtype == torch.float32 and table.is_contiguous() and out.is_contiguous():
         return torch.index_select(table, 1, index, out=out)
     for k in range(table.shape[0]):
         torch.index_select(table[k], 0, index, out=out[k])
