@@ -7,8 +7,9 @@
 * :func:`compute_dtype` / :func:`finish_low_precision`: the half-precision policy: float16
   and bfloat16 inputs are evaluated in float32 and cast back, saturated to the finite range
   (Filament's ``saturateMediump``), so low-precision inputs never produce Inf.
-* :func:`take_columns`: ``table.index_select(1, index)`` of a 2-D table as one 1-D gather
-  per row (the fast gather on CPU).
+* :func:`take_columns`: ``table.index_select(1, index)`` of a 2-D table by the fastest
+  gather on CPU (torch's float32 dim-1 path for contiguous float32, else one 1-D gather per
+  row).
 * :func:`floor_div_exact`: integer floor division of non-negative indices through float64
   (faster than int64 division on CPU), exact within its stated bound.
 """

@@ -57,7 +57,8 @@ def _corner_table(vertex_attrs: torch.Tensor, frags: Fragments) -> torch.Tensor:
         ids = ids + frags.row_item * n_vert
     attrs_t = vertex_attrs.permute(2, 0, 1).reshape(n_chan, -1)
     flat = ids.reshape(-1)
-    # One 1-D gather per channel (faster than a dim-1 gather of the (C, B*V) table).
+    # One 1-D gather per channel: differentiable (take_columns writes into out=), and 3x
+    # faster than a dim-1 gather of the (C, B*V) table in float64 (about even in float32).
     corner = torch.stack([a.index_select(0, flat) for a in attrs_t])  # (C, 3 M)
     return corner.view(n_chan, 3, -1).transpose(0, 1).contiguous()
 
