@@ -278,3 +278,32 @@ def test_two_triangles_sharing_a_vertical_edge_near_pixel_centres() -> None:
     covered = frags.face_id >= 0
     assert int(union64.sum()) > 20
     assert torch.equal(covered, union64), "pixels on the shared edge covered by neither face"
+
+
+def test_box_slack_keeps_a_centre_beside_a_vertex(monkeypatch) -> None:
+    """A fan around a vertex 8e-5 px right of and 2.4e-4 px above the pixel centre (row
+    614, column 847) at 1024²: float32 edges give that centre to a face whose leftmost
+    vertex is the fan's centre, so the face's box built from its vertices alone starts one
+    column too far right. clip.box_slack grows every box by the edges' float rounding, and
+    the centre is covered. (Found by a random search over fans; the case is checked to be a
+    hole without the slack, so it keeps testing the slack.)"""
+    import torchraster.raster.clip as clip_module
+
+    clip = torch.tensor([[
+        [0.9753255844116211, -0.29797500371932983, 0.7442125082015991, 1.4884250164031982],
+        [1.5623043775558472, -0.49030959606170654, 1.0686752796173096, 2.137350559234619],
+        [2.4051387310028076, -0.7791593670845032, 1.6527328491210938, 3.3054656982421875],
+        [1.9387387037277222, -0.7009797096252441, 1.361905813217163, 2.723811626434326],
+        [2.583390712738037, -1.106451153755188, 1.949929118156433, 3.899858236312866],
+        [0.8747470378875732, -0.27615872025489807, 0.678642988204956, 1.357285976409912],
+        [1.8618879318237305, -0.545601487159729, 1.4469192028045654, 2.893838405609131],
+        [2.08000111579895, -0.433127760887146, 1.4784117937088013, 2.9568235874176025]]])
+    faces = torch.tensor([[0, 2, 1], [0, 3, 2], [0, 4, 3], [0, 5, 4], [0, 6, 5], [0, 7, 6],
+                          [0, 1, 7]])
+    union64 = tr.rasterize(clip.double(), faces, (1024, 1024)).face_id[0] >= 0
+    assert bool(union64[614, 847]) and int(union64.sum()) > 1000
+    covered = tr.rasterize(clip, faces, (1024, 1024)).face_id[0] >= 0
+    assert torch.equal(covered, union64)
+    monkeypatch.setattr(clip_module, "box_slack", torch.zeros_like)
+    unslacked = tr.rasterize(clip, faces, (1024, 1024)).face_id[0] >= 0
+    assert not bool(unslacked[614, 847]), "the case no longer depends on box_slack"
