@@ -10,7 +10,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "torchraster"
 
 #: Layers bottom-up (docs/design.md, "Layers"); a module may import its own layer and below.
 LAYERS: list[set[str]] = [
-    {"numerics", "_validate"},
+    {"numerics", "_validate", "frame_pool"},
     {"camera", "mesh", "material", "texture", "anisotropic", "mip_atlas", "hdr_io"},
     {"raster", "io"},
     {"gbuffer", "scene", "testing"},

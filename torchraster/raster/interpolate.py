@@ -11,6 +11,7 @@ from typing import NamedTuple
 
 import torch
 
+from .. import frame_pool
 from .._validate import check_tensor
 from ..numerics import take_columns
 from .rasterize import PIXEL_CHUNK, Fragments, pixel_slices
@@ -77,7 +78,10 @@ class _Weigh(torch.autograd.Function):
         three, n_chan, _ = table.shape
         n = rows.numel()
         weights = weights.to(table.dtype)
-        out = table.new_zeros(n_chan, frame) if frame else table.new_empty(n_chan, n)
+        out = frame_pool.empty((n_chan, frame) if frame else (n_chan, n), table.dtype,
+                               table.device)
+        if frame:
+            out.zero_()
         c = min(n, PIXEL_CHUNK)
         buf = table.new_empty(three * n_chan * c)  # flat: contiguous chunk views
         val = table.new_empty(n_chan, c) if frame else None

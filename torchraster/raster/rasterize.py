@@ -23,6 +23,7 @@ from collections.abc import Iterator
 
 import torch
 
+from .. import frame_pool
 from .._validate import check_frame_memory, check_resolution, check_tensor
 from ..numerics import floor_div_exact, take_columns
 from .binning import (
@@ -341,8 +342,7 @@ def resolve_keys(clip_pos, faces, resolution, cull_backfaces, face_ranges, tile,
     check_frame_memory(f"resolution ({h}, {w}) at batch {b}", b * h * w, bytes_per_pixel,
                        clip_pos.device)
     max_candidates = max(1024, int(memory_budget) // coverage.bytes_per_candidate)
-    keys = torch.full((layers, b * h * w), EMPTY_KEY, dtype=torch.int64,
-                      device=clip_pos.device)
+    keys = frame_pool.empty((layers, b * h * w), torch.int64, clip_pos.device).fill_(EMPTY_KEY)
     # Occlusion culling: front faces first, then back faces that a conservative depth
     # test against the tiles resolved so far cannot prove hidden. Exact: a skipped
     # triangle's keys are all larger than the keys already in its pixels.
@@ -737,7 +737,11 @@ def _fragments_from_keys(clip_pos, faces, keys, shape, derivatives) -> Fragments
     n_faces = faces.shape[0]
     dev = keys.device
     covered = keys != EMPTY_KEY
-    pixels = covered.nonzero().squeeze(1)
+    if covered.numel() * 8 >= frame_pool.MIN_BYTES:  # counted first: into a pooled buffer
+        pixels = frame_pool.empty((int(covered.sum()), 1), torch.int64, dev)
+        pixels = torch.nonzero(covered, out=pixels).squeeze(1)
+    else:
+        pixels = covered.nonzero().squeeze(1)
     n = pixels.numel()
     # keys (this call's buffer) becomes face_id in place: its pages are already mapped. The
     # low half sign-extended is the face (< 2**31), and -1 for EMPTY_KEY (low half all
@@ -746,7 +750,7 @@ def _fragments_from_keys(clip_pos, faces, keys, shape, derivatives) -> Fragments
 
     # Visible (item, face) pairs, a table row each (item by item: the pixels of an item are
     # one contiguous run), and one reference pixel per row.
-    rows = torch.empty(n, dtype=torch.int64, device=dev)
+    rows = frame_pool.empty((n,), torch.int64, dev)
     starts = torch.searchsorted(pixels, torch.arange(b + 1, device=dev) * (h * w)).tolist()
     visible = torch.zeros(n_faces, dtype=torch.bool, device=dev)
     row_face, row_item, count = [], [], 0
@@ -822,11 +826,14 @@ class _PixelPass(torch.autograd.Function):
         ctx.depth = depth
         used = slice(FT_D, FT_DY + 1) if depth else slice(0, FT_B.stop)
         sub = table[used]
-        out = table.new_empty(n) if depth else table.new_empty(3, n)
-        ddx = table.new_empty(3, n) if derivatives else None
-        ddy = table.new_empty(3, n) if derivatives else None
-        uv = table.new_empty(2, n) if keep else None
-        inv_s = table.new_empty(n) if keep and not depth else None
+        def new(*shape: int) -> torch.Tensor:  # per-pixel: reused pages (frame_pool)
+            return frame_pool.empty(shape, table.dtype, table.device)
+
+        out = new(n) if depth else new(3, n)
+        ddx = new(3, n) if derivatives else None
+        ddy = new(3, n) if derivatives else None
+        uv = new(2, n) if keep else None
+        inv_s = new(n) if keep and not depth else None
         c = min(n, PIXEL_CHUNK)
         g = table.new_empty(sub.shape[0] * c)  # flat: every chunk's (rows, m) view is
         gr = table.new_empty(2 * c)  # contiguous (take_columns' fast float32 gather)

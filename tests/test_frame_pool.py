@@ -1,0 +1,101 @@
+"""frame_pool: large CPU buffers are reused only once nothing references them, so results
+of earlier calls never change, and rasterize + interpolate give the same images with it."""
+
+from __future__ import annotations
+
+import gc
+
+import pytest
+import torch
+import trimesh
+
+import torchraster as tr
+from torchraster import frame_pool
+
+
+@pytest.fixture
+def small_pool(monkeypatch):
+    """Pool every buffer of 1 KB and up (the default starts at 32 MB), from an empty pool."""
+    monkeypatch.setattr(frame_pool, "MIN_BYTES", 1024)
+    frame_pool.clear()
+    yield
+    frame_pool.clear()
+
+
+def test_released_buffer_is_reused(small_pool) -> None:
+    a = frame_pool.empty((64, 64), torch.float32, "cpu")
+    ptr = a.data_ptr()
+    del a
+    gc.collect()
+    assert frame_pool.pooled_bytes() == 64 * 64 * 4
+    b = frame_pool.empty((32, 128), torch.int32, "cpu")  # same bytes, other dtype and shape
+    assert b.data_ptr() == ptr and b.shape == (32, 128) and b.dtype == torch.int32
+    assert frame_pool.pooled_bytes() == 0
+
+
+def test_live_views_keep_their_buffer(small_pool) -> None:
+    """A view (or anything holding the storage) keeps the buffer out of the pool."""
+    a = frame_pool.empty((64, 64), torch.float32, "cpu").fill_(1.0)
+    view = a[3]
+    del a
+    gc.collect()
+    assert frame_pool.pooled_bytes() == 0
+    b = frame_pool.empty((64, 64), torch.float32, "cpu").fill_(2.0)
+    assert b.data_ptr() != view.data_ptr() - 3 * 64 * 4
+    assert bool((view == 1.0).all())
+
+
+def test_small_other_devices_and_dtypes_are_plain(monkeypatch) -> None:
+    frame_pool.clear()
+    assert frame_pool.empty((4, 4), torch.float32, "cpu").shape == (4, 4)  # below MIN_BYTES
+    monkeypatch.setattr(frame_pool, "MIN_BYTES", 8)
+    t = frame_pool.empty((16,), torch.bfloat16, "cpu")  # no numpy dtype: torch.empty
+    assert t.dtype == torch.bfloat16 and t.shape == (16,)
+    monkeypatch.setattr(frame_pool, "POOL_BYTES", 0)  # off: released buffers are dropped
+    a = frame_pool.empty((64,), torch.float32, "cpu")
+    del a
+    gc.collect()
+    assert frame_pool.pooled_bytes() == 0
+
+
+def test_pool_keeps_at_most_pool_bytes(small_pool, monkeypatch) -> None:
+    monkeypatch.setattr(frame_pool, "POOL_BYTES", 3000)
+    bufs = [frame_pool.empty((256,), torch.float32, "cpu") for _ in range(3)]  # 1 KB each
+    del bufs
+    gc.collect()
+    assert frame_pool.pooled_bytes() == 2048
+
+
+def test_rasterize_results_survive_later_calls(small_pool) -> None:
+    """Outputs held by the caller are never reused by the next call; outputs released are,
+    and the images equal those of an unpooled run."""
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    verts = torch.tensor(mesh.vertices, dtype=torch.float32)
+    faces = torch.tensor(mesh.faces, dtype=torch.int64)
+    views = [tr.camera.orbit(torch.tensor([a]), torch.tensor([20.0]), torch.tensor([3.0]))
+             for a in (0.0, 90.0, 180.0)]
+    proj = tr.camera.perspective(45.0, 1.0, 0.1)
+    clips = [tr.camera.transform_points(verts, proj @ v) for v in views]
+
+    def draw(clip):
+        frags = tr.rasterize(clip, faces, (64, 64))
+        return frags, tr.interpolate(verts[None], frags, faces)
+
+    first = draw(clips[0])
+    kept = (first[0].face_id.clone(), first[0].bary.clone(), first[1].clone())
+    second = draw(clips[1])  # while `first` is alive: must not share its buffers
+    assert torch.equal(first[0].face_id, kept[0]) and torch.equal(first[0].bary, kept[1])
+    assert torch.equal(first[1], kept[2])
+    del second
+    gc.collect()
+    assert frame_pool.pooled_bytes() > 0
+    third = draw(clips[2])  # reuses the released buffers
+    monkeypatch_off = pytest.MonkeyPatch()
+    monkeypatch_off.setattr(frame_pool, "POOL_BYTES", 0)
+    try:
+        plain = draw(clips[2])
+    finally:
+        monkeypatch_off.undo()
+    assert torch.equal(third[0].face_id, plain[0].face_id)
+    assert torch.equal(third[0].bary, plain[0].bary) and torch.equal(third[1], plain[1])
+    assert torch.equal(first[0].face_id, kept[0]) and torch.equal(first[1], kept[2])
