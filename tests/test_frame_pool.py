@@ -99,3 +99,25 @@ def test_rasterize_results_survive_later_calls(small_pool) -> None:
     assert torch.equal(third[0].face_id, plain[0].face_id)
     assert torch.equal(third[0].bary, plain[0].bary) and torch.equal(third[1], plain[1])
     assert torch.equal(first[0].face_id, kept[0]) and torch.equal(first[1], kept[2])
+
+
+def test_memory_check_returns_pooled_buffers_before_refusing(small_pool, monkeypatch) -> None:
+    """Released buffers the pool holds are reclaimable: the frame memory check frees them
+    and looks again before it refuses a frame."""
+    from torchraster import _validate
+
+    a = frame_pool.empty((1024,), torch.float32, "cpu")
+    del a
+    gc.collect()
+    assert frame_pool.pooled_bytes() > 0
+    freed = []
+
+    def available(device):  # enough only once the pool has been cleared
+        freed.append(frame_pool.pooled_bytes() == 0)
+        return 10**9 if freed[-1] else 10**3
+
+    monkeypatch.setattr(_validate, "available_memory", available)
+    _validate.check_frame_memory("frame", 10**4, 100, torch.device("cpu"))  # 1 MB: fits
+    assert freed == [False, True] and frame_pool.pooled_bytes() == 0
+    with pytest.raises(MemoryError, match="frame: a frame of 10,000,000 pixels"):
+        _validate.check_frame_memory("frame", 10**7, 1000, torch.device("cpu"))

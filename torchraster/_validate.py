@@ -11,6 +11,8 @@ from collections.abc import Sequence
 
 import torch
 
+from . import frame_pool
+
 
 def check_tensor(
     name: str,
@@ -109,10 +111,14 @@ def check_frame_memory(name: str, pixels: int, bytes_per_pixel: int,
     """Refuse a frame whose buffers cannot fit in the memory available on ``device``.
 
     Raises a ``MemoryError`` saying how much the frame needs and how much is available,
-    before anything large is allocated.
+    before anything large is allocated. Buffers held by :mod:`torchraster.frame_pool` count
+    as available: they are returned to the OS before refusing.
     """
     need = pixels * bytes_per_pixel
     have = available_memory(device)
+    if have is not None and need > have and frame_pool.pooled_bytes():
+        frame_pool.clear()
+        have = available_memory(device)
     if have is not None and need > have:
         raise MemoryError(
             f"{name}: a frame of {pixels:,} pixels needs about {need / 2**30:.1f} GiB "
