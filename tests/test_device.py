@@ -18,7 +18,8 @@ FACTORIES = {torch.arange, torch.zeros, torch.ones, torch.full, torch.empty, tor
 
 
 class _FactoriesWithoutDevice(TorchFunctionMode):
-    """Records (file, line) of torchraster's tensor factory calls that name no device."""
+    """Records (file, line) of torchraster's tensor factory calls that name no device (called
+    by torchraster's own code: factories inside other libraries, e.g. kornia, are theirs)."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -28,9 +29,7 @@ class _FactoriesWithoutDevice(TorchFunctionMode):
         kwargs = kwargs or {}
         if func in FACTORIES and "device" not in kwargs:
             frame = inspect.currentframe().f_back
-            while frame is not None and not frame.f_code.co_filename.startswith(PACKAGE):
-                frame = frame.f_back
-            if frame is not None:
+            if frame is not None and frame.f_code.co_filename.startswith(PACKAGE):
                 self.found.add((frame.f_code.co_filename.removeprefix(PACKAGE),
                                 frame.f_lineno))
         return func(*args, **kwargs)
