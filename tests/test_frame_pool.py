@@ -58,12 +58,16 @@ def test_small_other_devices_and_dtypes_are_plain(monkeypatch) -> None:
     assert frame_pool.pooled_bytes() == 0
 
 
-def test_pool_keeps_at_most_pool_bytes(small_pool, monkeypatch) -> None:
+def test_pool_keeps_at_most_pool_bytes_newest_first(small_pool, monkeypatch) -> None:
     monkeypatch.setattr(frame_pool, "POOL_BYTES", 3000)
     bufs = [frame_pool.empty((256,), torch.float32, "cpu") for _ in range(3)]  # 1 KB each
-    del bufs
-    gc.collect()
+    ptrs = [b.data_ptr() for b in bufs]
+    for k in range(3):  # released oldest first
+        bufs[k] = None
+        gc.collect()
     assert frame_pool.pooled_bytes() == 2048
+    again = frame_pool.empty((256,), torch.float32, "cpu")
+    assert again.data_ptr() in ptrs[1:]  # the first released buffer was dropped
 
 
 def test_rasterize_results_survive_later_calls(small_pool) -> None:

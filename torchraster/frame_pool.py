@@ -13,9 +13,10 @@ one is freed (the storage drops its array), the array returns to the pool, and t
 request of a similar size reuses its already mapped pages. A buffer is never handed out
 while anything still references it, so results of earlier calls stay intact.
 
-The pool keeps at most :data:`POOL_BYTES` of released buffers (0 turns it off; :func:`clear`
-returns them to the OS). Pooled tensors behave like any tensor made with
-``torch.from_numpy``: everything works except growing them in place with ``resize_``.
+The pool keeps at most :data:`POOL_BYTES` of released buffers, the most recently released
+ones (0 turns it off; :func:`clear` returns them to the OS). Pooled tensors behave like any
+tensor made with ``torch.from_numpy``: everything works except growing them in place with
+``resize_``.
 """
 
 from __future__ import annotations
@@ -74,10 +75,13 @@ def empty(shape: tuple[int, ...], dtype: torch.dtype, device: torch.device | str
 
 
 def _release(base: np.ndarray) -> None:
-    """Return ``base`` to the pool (dropped instead when the pool is full)."""
+    """Return ``base`` to the pool; the oldest released buffers leave when it holds more
+    than :data:`POOL_BYTES` (a workload whose sizes changed keeps its current ones)."""
     with _lock:
-        if sum(b.nbytes for b in _free) + base.nbytes <= POOL_BYTES:
-            _free.append(base)
+        _free.append(base)
+        total = sum(b.nbytes for b in _free)
+        while _free and total > POOL_BYTES:
+            total -= _free.pop(0).nbytes
 
 
 def pooled_bytes() -> int:
