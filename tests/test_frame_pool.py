@@ -125,3 +125,37 @@ def test_memory_check_returns_pooled_buffers_before_refusing(small_pool, monkeyp
     assert freed == [False, True] and frame_pool.pooled_bytes() == 0
     with pytest.raises(MemoryError, match="frame: a frame of 10,000,000 pixels"):
         _validate.check_frame_memory("frame", 10**7, 1000, torch.device("cpu"))
+
+
+def test_gradients_with_pooled_buffers_match_unpooled(small_pool) -> None:
+    """The per-pixel pass saves pooled buffers for backward: gradients of two overlapping
+    calls (the second made before the first's backward) equal those without the pool."""
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    verts = torch.tensor(mesh.vertices, dtype=torch.float32)
+    faces = torch.tensor(mesh.faces, dtype=torch.int64)
+    proj = tr.camera.perspective(45.0, 1.0, 0.1)
+    clips = [tr.camera.transform_points(verts, proj @ tr.camera.orbit(
+        torch.tensor([a]), torch.tensor([10.0]), torch.tensor([3.0]))) for a in (0.0, 60.0)]
+
+    def grads() -> list[torch.Tensor]:
+        leaves = [c.clone().requires_grad_(True) for c in clips]
+        losses = []
+        for leaf in leaves:  # both forwards first: their saved buffers coexist
+            frags = tr.rasterize(leaf, faces, (48, 48), derivatives=True)
+            image = tr.interpolate(verts[None], frags, faces)
+            losses.append(image.square().sum() + frags.bary_dx.square().sum())
+        for loss in losses:
+            loss.backward()
+        return [leaf.grad for leaf in leaves]
+
+    pooled = grads()
+    pooled_again = grads()  # now from released buffers
+    assert frame_pool.pooled_bytes() > 0
+    off = pytest.MonkeyPatch()
+    off.setattr(frame_pool, "POOL_BYTES", 0)
+    try:
+        plain = grads()
+    finally:
+        off.undo()
+    for a, b, c in zip(pooled, pooled_again, plain, strict=True):
+        assert torch.equal(a, c) and torch.equal(b, c)
