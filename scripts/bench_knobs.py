@@ -5,20 +5,27 @@
   only time and peak memory move.
 * supersampling of the Renderer (anti-aliasing): error against a 8x supersampled render
   of the same view (mean absolute error of the display-encoded colour, in % of the mean).
+* the frame pool (``frame_pool.POOL_BYTES``) on and off: rasterize + interpolate timed in
+  turns in one process (each timed call preceded by an untimed one of the same setting, so
+  the pool holds the previous call's released buffers, as in a loop); images compared bit
+  for bit. Its own section (``--only frame-pool`` runs just it).
 
-    python scripts/bench_knobs.py [--quick]
+    python scripts/bench_knobs.py [--quick] [--only frame-pool]
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import statistics
+import time
 
 import torch
 import trimesh
 from benchmd import markdown_table, median_time, update_section
 
 import torchraster as tr
+from torchraster import frame_pool
 
 raster_mod = importlib.import_module("torchraster.raster.rasterize")
 
@@ -74,11 +81,64 @@ def supersampling(repeats: int, size: int) -> str:
     return markdown_table(["supersample", "render ms", "mean abs error vs 8x (%)"], rows)
 
 
+def frame_pool_on_off(turns: int) -> str:
+    rows = []
+    for name, subdiv, res, batch in (("5k faces, 1024², batch 8", 4, 1024, 8),
+                                     ("80k faces, 1024², batch 8", 6, 1024, 8),
+                                     ("80k faces, 512², batch 8", 6, 512, 8)):
+        clip, faces = _sphere_clip(subdiv, batch)
+        normals = clip[..., :3].contiguous()
+
+        def draw(clip=clip, faces=faces, normals=normals, res=res) -> torch.Tensor:
+            with torch.no_grad():
+                return tr.interpolate(normals, tr.rasterize(clip, faces, (res, res)), faces)
+
+        default = frame_pool.POOL_BYTES
+        times: dict[int, list[float]] = {default: [], 0: []}
+        images = {}
+        for turn in range(turns):
+            for setting in (default, 0) if turn % 2 == 0 else (0, default):
+                frame_pool.POOL_BYTES = setting
+                draw()  # the previous call's buffers, released (pooled when on)
+                start = time.perf_counter()
+                image = draw()
+                times[setting].append(time.perf_counter() - start)
+                images[setting] = image
+                del image
+        frame_pool.POOL_BYTES = default
+        frame_pool.clear()
+        ratio = statistics.median(a / b for a, b in zip(times[default], times[0], strict=True))
+        same = torch.equal(images[default], images[0])
+        rows.append([name, statistics.median(times[0]) * 1e3,
+                     statistics.median(times[default]) * 1e3, ratio,
+                     "0 (identical)" if same else "DIFFERS"])
+        print(rows[-1], flush=True)
+    return markdown_table(["scene", "pool off ms", "pool on ms", "on / off (median of turns)",
+                           "error"], rows)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--only", choices=["frame-pool"], help="run only this part")
     args = ap.parse_args()
     repeats = 2 if args.quick else 5
+    pool = (
+        "## Frame pool: rasterize + interpolate with `frame_pool` on and off\n\n"
+        "`torchraster.frame_pool` keeps released frame buffers of 32 MB and up for the next "
+        "call (`POOL_BYTES`, default 1 GiB; 0 = off). Timed in turns in one process, each "
+        "timed call after an untimed one of the same setting (so the pool holds the previous "
+        "call's buffers, as in a loop); the images are compared bit for bit. Frames whose "
+        "buffers are all below 32 MB (512², batch 8) are not pooled: that row runs the same "
+        "code both ways, so its ratio shows the noise of the measurement.\n\n"
+        f"{frame_pool_on_off(4 if args.quick else 12)}\n")
+    if args.only == "frame-pool":
+        if args.quick:
+            print(pool)
+        else:
+            update_section("knobs-frame-pool", pool,
+                           command="python scripts/bench_knobs.py --only frame-pool")
+        return
     tiles = tile_and_budget(repeats)
     ss = supersampling(repeats, 128 if args.quick else 256)
     body = (
@@ -93,6 +153,8 @@ def main() -> None:
     )
     if not args.quick:
         update_section("knobs", body)
+        update_section("knobs-frame-pool", pool,
+                       command="python scripts/bench_knobs.py --only frame-pool")
     else:
         print(body)
 

@@ -159,3 +159,13 @@ def test_gradients_with_pooled_buffers_match_unpooled(small_pool) -> None:
         off.undo()
     for a, b, c in zip(pooled, pooled_again, plain, strict=True):
         assert torch.equal(a, c) and torch.equal(b, c)
+
+
+@pytest.mark.parametrize("pooled", [True, False])
+def test_flatnonzero_matches_nonzero(small_pool, monkeypatch, pooled: bool) -> None:
+    if not pooled:
+        monkeypatch.setattr(frame_pool, "MIN_BYTES", 2**40)
+    mask = torch.rand(3, 50, 40, generator=torch.Generator().manual_seed(3)) < 0.3
+    got = frame_pool.flatnonzero(mask)
+    assert torch.equal(got, mask.view(-1).nonzero().squeeze(1)) and got.dtype == torch.int64
+    assert frame_pool.flatnonzero(torch.zeros(2000, dtype=torch.bool)).shape == (0,)

@@ -74,6 +74,17 @@ def empty(shape: tuple[int, ...], dtype: torch.dtype, device: torch.device | str
     return torch.from_numpy(array)
 
 
+def flatnonzero(mask: torch.Tensor) -> torch.Tensor:
+    """``mask.view(-1).nonzero().squeeze(1)``: the (M,) int64 indices of the True entries
+    of a contiguous bool ``mask`` (any shape), written into a pooled buffer when it may be
+    a large one (the entries are counted first, so the buffer has its final size)."""
+    flat = mask.view(-1)
+    if flat.numel() * 8 < MIN_BYTES or POOL_BYTES <= 0:
+        return flat.nonzero().squeeze(1)
+    out = empty((int(flat.sum()), 1), torch.int64, flat.device)
+    return torch.nonzero(flat, out=out).squeeze(1)
+
+
 def _release(base: np.ndarray) -> None:
     """Return ``base`` to the pool; the oldest released buffers leave when it holds more
     than :data:`POOL_BYTES` (a workload whose sizes changed keeps its current ones)."""
@@ -96,4 +107,4 @@ def clear() -> None:
         _free.clear()
 
 
-__all__ = ["MIN_BYTES", "POOL_BYTES", "clear", "empty", "pooled_bytes"]
+__all__ = ["MIN_BYTES", "POOL_BYTES", "clear", "empty", "flatnonzero", "pooled_bytes"]

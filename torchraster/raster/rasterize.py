@@ -736,12 +736,7 @@ def _fragments_from_keys(clip_pos, faces, keys, shape, derivatives) -> Fragments
     b, h, w = shape
     n_faces = faces.shape[0]
     dev = keys.device
-    covered = keys != EMPTY_KEY
-    if covered.numel() * 8 >= frame_pool.MIN_BYTES:  # counted first: into a pooled buffer
-        pixels = frame_pool.empty((int(covered.sum()), 1), torch.int64, dev)
-        pixels = torch.nonzero(covered, out=pixels).squeeze(1)
-    else:
-        pixels = covered.nonzero().squeeze(1)
+    pixels = frame_pool.flatnonzero(keys != EMPTY_KEY)
     n = pixels.numel()
     # keys (this call's buffer) becomes face_id in place: its pages are already mapped. The
     # low half sign-extended is the face (< 2**31), and -1 for EMPTY_KEY (low half all
