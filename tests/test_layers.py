@@ -11,13 +11,15 @@ PACKAGE = Path(__file__).resolve().parents[1] / "torchraster"
 #: Layers bottom-up (docs/design.md, "Layers"); a module may import its own layer and below.
 LAYERS: list[set[str]] = [
     {"numerics", "_validate", "frame_pool"},
-    {"camera", "mesh", "material", "texture", "anisotropic", "mip_atlas", "hdr_io"},
+    {"camera", "mesh", "material", "texture", "anisotropic", "mip_atlas", "hdr_io",
+     "animation", "randomize"},
     {"raster", "io"},
-    {"gbuffer", "scene", "testing"},
+    {"gbuffer", "scene", "labels", "motion", "testing"},
     {"shading"},
     {"post"},
     {"renderer", "transparency", "background", "dissolve"},
-    {"config", "pipeline", "manifest", "distributed", "data", "cli", "__main__", "__init__"},
+    {"config", "pipeline", "manifest", "distributed", "data", "cli", "__main__", "__init__",
+     "export"},
 ]
 CONFIG_ONLY = {"pydantic", "yaml"}
 

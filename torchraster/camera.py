@@ -15,6 +15,11 @@ Depth mappings of :func:`perspective` (d = distance along the view axis = clip w
   near -> 1) so that nearer is still smaller: the contract's visibility rule and the
   rasterizer's "nearest wins" test stay unchanged. Use it with ``far=math.inf`` for the best
   precision (a finite far reintroduces cancellation next to the far plane).
+
+Other conventions: :func:`convert` re-expresses pose matrices between OpenCV / COLMAP
+(x right, y down, z forward), OpenGL / Blender / NeRF (ours) and PyTorch3D (x left, y up,
+z forward; row-vector ``R, T`` through :func:`pytorch3d_rt`); :func:`intrinsics_from_projection`
+gives OpenCV's ``K`` of a projection (the inverse of :func:`from_intrinsics`).
 """
 
 from __future__ import annotations
@@ -215,3 +220,194 @@ def view_from_opencv(rotation: torch.Tensor, translation: torch.Tensor) -> torch
     view[:, 3, 3] = 1.0
     flip = torch.diag(rotation.new_tensor([1.0, -1.0, -1.0, 1.0]))
     return flip @ view
+
+
+# --- Camera conventions -------------------------------------------------------------------
+#
+# A convention fixes the axes of the camera frame. Each is written as the diagonal sign matrix
+# S that maps OpenCV camera coordinates (x right, y down, z forward) to its own, so
+# world_to_camera_dst = S_dst S_src world_to_camera_src (S is its own inverse).
+_CONVENTION_SIGNS = {
+    "opencv": (1.0, 1.0, 1.0),  # x right, y down, z forward (COLMAP, OpenCV)
+    "opengl": (1.0, -1.0, -1.0),  # x right, y up, z backward (Blender, NeRF, our view space)
+    "pytorch3d": (-1.0, -1.0, 1.0),  # x left, y up, z forward
+}
+#: Accepted names (case-insensitive) of each camera convention of :func:`convert`.
+CONVENTION_ALIASES = {
+    "opencv": "opencv", "colmap": "opencv",
+    "opengl": "opengl", "blender": "opengl", "nerf": "opengl",
+    "pytorch3d": "pytorch3d",
+}
+_KINDS = ("world_to_camera", "camera_to_world")
+
+
+def convention(name: str) -> str:
+    """The canonical name (``"opencv"``, ``"opengl"`` or ``"pytorch3d"``) of a camera
+    convention or one of its aliases (:data:`CONVENTION_ALIASES`, case-insensitive).
+
+    Raises:
+        ValueError: an unknown name, listing the valid ones.
+    """
+    canon = CONVENTION_ALIASES.get(str(name).lower()) if isinstance(name, str) else None
+    if canon is None:
+        raise ValueError(f"camera convention {name!r}: expected one of "
+                         f"{sorted(CONVENTION_ALIASES)} (case-insensitive)")
+    return canon
+
+
+def _check_matrices(name: str, m: object) -> torch.Tensor:
+    if not isinstance(m, torch.Tensor):
+        raise TypeError(f"{name}: expected a torch.Tensor, got {type(m).__name__}")
+    if m.dim() < 2 or tuple(m.shape[-2:]) != (4, 4):
+        raise ValueError(f"{name}: expected shape (..., 4, 4), got {tuple(m.shape)}")
+    if not m.is_floating_point():
+        raise TypeError(f"{name}: expected a floating-point tensor, got {m.dtype}")
+    return m
+
+
+def _signs(name: str, like: torch.Tensor) -> torch.Tensor:
+    """The (4, 4) diagonal axis flip from OpenCV camera axes to convention ``name``'s."""
+    return torch.diag(like.new_tensor([*_CONVENTION_SIGNS[convention(name)], 1.0]))
+
+
+def convert(matrix: torch.Tensor, src: str, dst: str, kind: str = "world_to_camera"
+            ) -> torch.Tensor:
+    """Re-express a camera pose matrix in another camera-axis convention.
+
+    Conventions (aliases case-insensitive): ``"opencv"`` = ``"colmap"`` (x right, y down,
+    z forward), ``"opengl"`` = ``"blender"`` = ``"nerf"`` (x right, y up, z backward: the
+    renderer's view space, :func:`look_at`), ``"pytorch3d"`` (x left, y up, z forward; see
+    :func:`pytorch3d_rt` for its row-vector ``R, T``). Only the camera's axes change: the
+    camera centre, the viewing direction and the world frame stay. Intrinsics are not
+    touched (COLMAP and NeRF tools place pixel centres at +0.5, OpenCV at integers: their
+    principal points differ by half a pixel, see :func:`intrinsics_from_projection`).
+
+    Args:
+        matrix: ``(..., 4, 4)`` column-vector matrices (``p' = M @ [p, 1]``).
+        src, dst: the conventions of the input and of the result.
+        kind: ``"world_to_camera"`` (extrinsics, view matrices) or ``"camera_to_world"``
+            (poses, e.g. NeRF's ``transform_matrix``).
+
+    Returns:
+        ``(..., 4, 4)``, same dtype and device.
+
+    Raises:
+        ValueError: an unknown convention or kind (listing the valid ones), a bad shape.
+    """
+    m = _check_matrices("matrix", matrix)
+    if kind not in _KINDS:
+        raise ValueError(f"kind {kind!r}: expected one of {list(_KINDS)}")
+    flip = _signs(dst, m) @ _signs(src, m)  # src camera axes -> dst camera axes
+    return flip @ m if kind == "world_to_camera" else m @ flip
+
+
+def pytorch3d_rt(world_to_camera: torch.Tensor, src: str = "opengl"
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """PyTorch3D's ``R, T`` of a camera: ``X_cam = X_world @ R + T`` (row vectors).
+
+    Args:
+        world_to_camera: ``(..., 4, 4)`` rigid world -> camera matrices in convention
+            ``src`` (default: the renderer's view matrices).
+        src: the convention of ``world_to_camera`` (see :func:`convert`).
+
+    Returns:
+        ``R`` ``(..., 3, 3)`` and ``T`` ``(..., 3)`` for ``pytorch3d.renderer.cameras``
+        (``R`` is the transpose of the column-vector rotation).
+    """
+    m = convert(world_to_camera, src, "pytorch3d")
+    return m[..., :3, :3].transpose(-1, -2), m[..., :3, 3]
+
+
+def from_pytorch3d_rt(R: torch.Tensor, T: torch.Tensor, dst: str = "opengl") -> torch.Tensor:
+    """World -> camera matrices ``(..., 4, 4)`` in convention ``dst`` from PyTorch3D's
+    ``R (..., 3, 3)``, ``T (..., 3)`` (``X_cam = X_world @ R + T``); inverse of
+    :func:`pytorch3d_rt`."""
+    if not isinstance(R, torch.Tensor) or R.dim() < 2 or tuple(R.shape[-2:]) != (3, 3):
+        raise ValueError(f"R: expected a tensor of shape (..., 3, 3), got "
+                         f"{tuple(R.shape) if isinstance(R, torch.Tensor) else type(R).__name__}")
+    if not isinstance(T, torch.Tensor) or T.dim() < 1 or T.shape[-1] != 3:
+        raise ValueError(f"T: expected a tensor of shape (..., 3), got "
+                         f"{tuple(T.shape) if isinstance(T, torch.Tensor) else type(T).__name__}")
+    if not R.is_floating_point():
+        raise TypeError(f"R: expected a floating-point tensor, got {R.dtype}")
+    batch = torch.broadcast_shapes(R.shape[:-2], T.shape[:-1])
+    m = R.new_zeros(*batch, 4, 4)
+    m[..., :3, :3] = R.transpose(-1, -2)
+    m[..., :3, 3] = T.to(R)
+    m[..., 3, 3] = 1.0
+    return convert(m, "pytorch3d", dst)
+
+
+def intrinsics_from_projection(proj: torch.Tensor, resolution: tuple[int, int]) -> torch.Tensor:
+    """OpenCV intrinsics ``K`` of perspective projection(s); inverse of
+    :func:`from_intrinsics`.
+
+    OpenCV places the centre of pixel (row v, col u) at (u, v) and projects a camera-frame
+    point (z forward) to ``u = fx X/Z + s Y/Z + cx``, ``v = fy Y/Z + cy``. With our pixel rule
+    (column j samples NDC x = 2(j + 0.5)/W - 1, row i samples y = 1 - 2(i + 0.5)/H) and
+    w_clip = -z_view = Z: fx = P00 W/2, s = -P01 W/2, cx = (1 - P02) W/2 - 1/2,
+    fy = P11 H/2, cy = (1 + P12) H/2 - 1/2. (COLMAP / NeRF put pixel centres at +0.5:
+    their cx, cy are these plus 0.5.)
+
+    Args:
+        proj: ``(..., 4, 4)`` perspective projections (bottom row ``(0, 0, -1, 0)``).
+        resolution: ``(H, W)`` in pixels.
+
+    Returns:
+        ``K``: ``(..., 3, 3)``, same dtype and device.
+
+    Raises:
+        ValueError: a projection that is not a perspective one of this form (e.g.
+            orthographic), or a skewed y axis (``P10 != 0``) that K cannot hold.
+    """
+    p = _check_matrices("proj", proj)
+    h, w = (int(s) for s in resolution)
+    if h <= 0 or w <= 0:
+        raise ValueError(f"resolution: expected positive (H, W), got {tuple(resolution)}")
+    bottom = p.new_tensor([0.0, 0.0, -1.0, 0.0])
+    if not bool((p[..., 3, :] == bottom).all()):
+        raise ValueError("proj: expected perspective projections with bottom row "
+                         "(0, 0, -1, 0) (w_clip = -z_view); an orthographic one has no K")
+    if bool((p[..., 1, 0] != 0).any()):
+        raise ValueError("proj: P[1, 0] != 0 (y depends on x) cannot be written as a K matrix")
+    k = p.new_zeros(*p.shape[:-2], 3, 3)
+    k[..., 0, 0] = p[..., 0, 0] * w / 2
+    k[..., 0, 1] = -p[..., 0, 1] * w / 2 + 0.0  # + 0.0: no -0.0 in files
+    k[..., 0, 2] = (1 - p[..., 0, 2]) * w / 2 - 0.5
+    k[..., 1, 1] = p[..., 1, 1] * h / 2
+    k[..., 1, 2] = (1 + p[..., 1, 2]) * h / 2 - 0.5
+    k[..., 2, 2] = 1.0
+    return k
+
+
+def pytorch3d_intrinsics(K: torch.Tensor, resolution: tuple[int, int]
+                         ) -> tuple[torch.Tensor, torch.Tensor]:
+    """PyTorch3D NDC ``focal_length`` and ``principal_point`` (``PerspectiveCameras``,
+    ``in_ndc=True``) of OpenCV intrinsics.
+
+    PyTorch3D's documented screen space puts (0, 0) at the top-left corner of the top-left
+    pixel, so its pixel centres sit at +0.5 (OpenCV: at integers); its NDC is +x left, +y
+    up, the shorter image side spanning [-1, 1]: ``x_ndc = (W/2 - x_screen) 2/S`` with
+    S = min(H, W). Hence ``f_ndc = f 2/S`` and ``p_ndc = -(c + 0.5 - size/2) 2/S``.
+    (PyTorch3D's own ``cameras_from_opencv_projection`` omits the 0.5.)
+
+    Args:
+        K: ``(..., 3, 3)`` OpenCV intrinsics without skew.
+        resolution: ``(H, W)``.
+
+    Returns:
+        ``focal_length`` ``(..., 2)`` and ``principal_point`` ``(..., 2)`` (x, y).
+    """
+    if not isinstance(K, torch.Tensor) or K.dim() < 2 or tuple(K.shape[-2:]) != (3, 3):
+        raise ValueError("K: expected a tensor of shape (..., 3, 3)")
+    if not K.is_floating_point():
+        raise TypeError(f"K: expected a floating-point tensor, got {K.dtype}")
+    if bool((K[..., 0, 1] != 0).any()):
+        raise ValueError("K: PyTorch3D cameras have no skew (K[0, 1] must be 0)")
+    h, w = (int(s) for s in resolution)
+    if h <= 0 or w <= 0:
+        raise ValueError(f"resolution: expected positive (H, W), got {tuple(resolution)}")
+    half = min(h, w) / 2
+    focal = torch.stack([K[..., 0, 0], K[..., 1, 1]], dim=-1) / half
+    centre = torch.stack([K[..., 0, 2] + 0.5 - w / 2, K[..., 1, 2] + 0.5 - h / 2], dim=-1)
+    return focal, -centre / half

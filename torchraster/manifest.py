@@ -42,6 +42,7 @@ from pathlib import Path
 
 import torch
 
+from .camera import intrinsics_from_projection
 from .config import RenderFile, safe_name
 from .pipeline import TEMP_MARKER, ViewResult, ViewSpec, atomic_write, sweep_temp_files
 
@@ -106,17 +107,16 @@ def camera_matrices(view: torch.Tensor, proj: torch.Tensor, resolution: tuple[in
         ``{"opencv": {"K", "world_to_camera", "camera_to_world"}, "opengl":
         {"world_to_view", "view_to_world", "projection"}}``. ``K`` (3, 3) follows OpenCV
         (pixel (row v, col u) centred at (u, v); ``u = fx X/Z + cx``), the inverse of
-        :func:`torchraster.camera.from_intrinsics`; None for an orthographic projection.
+        :func:`torchraster.camera.from_intrinsics`
+        (:func:`torchraster.camera.intrinsics_from_projection`); None for an orthographic
+        projection.
     """
     h, w = resolution
     view64, proj64 = view.detach().double().cpu(), proj.detach().double().cpu()
     cv = _GL_TO_CV @ view64
     k = None
     if float(proj64[3, 3]) == 0.0:  # perspective: w_clip = -z_view
-        k = [[float(proj64[0, 0]) * w / 2, -float(proj64[0, 1]) * w / 2,
-              (1 - float(proj64[0, 2])) * w / 2 - 0.5],
-             [0.0, float(proj64[1, 1]) * h / 2, (1 + float(proj64[1, 2])) * h / 2 - 0.5],
-             [0.0, 0.0, 1.0]]
+        k = _rows(intrinsics_from_projection(proj64, (h, w)))
     return {"opencv": {"K": k, "world_to_camera": _rows(cv),
                        "camera_to_world": _rows(torch.linalg.inv(cv))},
             "opengl": {"world_to_view": _rows(view64),
