@@ -44,8 +44,8 @@ def test_radiance_is_linear_hdr_and_color_is_display(tmp_path):
     tr.render_to_files(cfg, tmp_path)
     radiance, color = np.load(tmp_path / "radiance.npy"), np.load(tmp_path / "color.npy")
     assert radiance.max() > 4.0 and color.max() <= 1.0  # HDR kept; display in [0, 1]
-    scene = pipeline.build_scene(cfg)
-    view, proj = pipeline.build_camera(cfg.cameras[0], scene.positions, (16, 16))
+    scene = tr.config.build_scene(cfg)
+    view, proj = tr.config.build_camera(cfg.cameras[0], scene.positions, (16, 16))
     ref = tr.Renderer(16, shading="unlit")(scene, view, proj).image[0].numpy()
     np.testing.assert_allclose(radiance, ref, rtol=1e-6, atol=1e-6)
     assert (tmp_path / "radiance.png").is_file()

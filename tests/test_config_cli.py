@@ -98,7 +98,7 @@ def test_several_cameras_and_npy_outputs(tmp_path):
 
 
 def test_material_overrides_and_transform_apply(tmp_path):
-    from torchraster.pipeline import build_scene
+    from torchraster.config import build_scene
 
     text = (f"scene:\n  mesh: {SPOT}\n  transform:\n    translate: [1, 2, 3]\n    scale: 2\n"
             "materials:\n  - base_color: [0.2, 0.4, 0.6]\n    metallic: 0.7\n    roughness: 0.3\n")

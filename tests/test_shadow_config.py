@@ -119,7 +119,7 @@ def test_scene_of_primitives_only_renders_with_flags():
             "lights:\n  - {type: point, position: [0, 3, 0], intensity: 10, cast_shadows: true}\n"
             "render: {resolution: 32}\noutputs: {channels: [radiance]}\n")
     cfg = tr.parse_config(text)
-    scene = pipeline.build_scene(cfg)
+    scene = tr.config.build_scene(cfg)
     assert scene.cast_shadows is not None and int((~scene.cast_shadows).sum()) == 2
     assert scene.receive_shadows is None
     names = [m.name for m in scene.materials]

@@ -1,95 +1,58 @@
-"""YAML render configs: the schema, its validation and the builders of the objects it names.
-
-The config layer is the only place that knows YAML. A config names a scene (mesh or glTF
-file, relative to the config file), cameras, render settings, lights, an optional
-environment map, material overrides, post-processing and outputs; the full reference is
-``docs/config.md`` (``torchraster schema`` prints it). Unknown keys are errors, with a
-"did you mean" suggestion. Every error names the file, the line and the key path, e.g.
-``quickstart.yaml:7: cameras.0.fov_deg: Input should be less than 180``, and
-:func:`check_config` finds every missing file and degenerate camera in one pass before
-anything renders.
+"""The schema of a render config: one pydantic model per YAML section.
 
 Defaults live in one place: the keyword defaults of the objects the config builds
 (``Bloom(threshold=1.0)``, ``Renderer(supersample=1)``, ...) or the named constants of their
-module (light defaults); the pydantic fields read them (:func:`default_of`) and the
-builders pass keyword arguments.
+module (light defaults); the fields read them (:func:`default_of`) and the builders
+(:mod:`torchraster.config.build`) pass keyword arguments.
 
-Example (``configs/quickstart.yaml``)::
-
-    scene:
-      mesh: ../torchraster/assets/spot/spot_triangulated.obj
-    cameras:
-      - orbit: {azimuth_deg: 30, elevation_deg: 15}
-    render:
-      resolution: [512, 512]    # [H, W], or one int for a square image
+Paths (:data:`FilePath` fields) are resolved when the config is validated: relative to the
+``base_dir`` of the validation context (the config file's folder; :func:`parse_config`
+passes it), else to the working folder. Each holds a :class:`ConfigPath`: the absolute path
+as a ``str`` that remembers the text the file gave (``.written``); dumps (``model_dump``,
+the manifest's config hash and records) show that text, so they do not depend on where the
+project lives. A new section with a file in it only needs to type the field ``FilePath``.
 """
 
 from __future__ import annotations
 
-import difflib
-import glob
-import hashlib
 import inspect
 import math
-import os
 import random
-import re
-import typing
-from collections import Counter
-from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-import torch
-import yaml
 from pydantic import (
+    AfterValidator,
     BaseModel,
     ConfigDict,
     Field,
+    PlainSerializer,
     PrivateAttr,
     TypeAdapter,
-    ValidationError,
+    ValidationInfo,
     field_validator,
     model_validator,
 )
 
-from .anisotropic import MAX_TEXTURE_ANISOTROPY
-from .background import FITS, load_background
-from .dissolve import MAX_OCTAVES, Dissolve
-from .post import (
-    SSAO,
-    SSR,
-    AutoExposure,
-    Bloom,
-    DepthOfField,
-    EncodeSRGB,
-    Exposure,
-    PostChain,
-    ToneMap,
-)
-from .post.tonemap import CURVES
-from .renderer import LIT_MODELS, SHADING, Renderer
-from .shading.ibl import SPECULAR_MODES, Environment
-from .shading.lights import (
+from ..anisotropic import MAX_TEXTURE_ANISOTROPY
+from ..background import FITS
+from ..dissolve import MAX_OCTAVES, Dissolve
+from ..post import SSAO, SSR, AutoExposure, Bloom, DepthOfField, Exposure, ToneMap
+from ..post.tonemap import CURVES
+from ..renderer import LIT_MODELS, SHADING, Renderer
+from ..shading.ibl import SPECULAR_MODES, Environment
+from ..shading.lights import (
     DEFAULT_COLOR,
     DEFAULT_DIRECTION,
     DEFAULT_INNER_CONE_ANGLE,
     DEFAULT_INTENSITY,
     DEFAULT_OUTER_CONE_ANGLE,
-    SH_C0,
-    DirectionalLights,
-    Lights,
-    PointLights,
-    SpotLights,
 )
-from .shading.models import model_options
-from .shading.shadows import FILTERS, PATTERNS, ShadowSettings
-from .shading.volumetric import MAX_ANISOTROPY, MAX_DENSITY, Fog
+from ..shading.models import model_options
+from ..shading.shadows import FILTERS, PATTERNS, ShadowSettings
+from ..shading.volumetric import MAX_ANISOTROPY, MAX_DENSITY, Fog
+from .lines import line_of
 
-#: YAML nodes a config may expand to (aliases expanded): far above any real config, far
-#: below what a "billion laughs" document would make us allocate.
-MAX_YAML_NODES: int = 100_000
 #: Largest supersampled image side (``render.supersample * max(resolution)``).
 MAX_SUPERSAMPLED_SIDE: int = 16384
 #: Largest image side of ``render.resolution``.
@@ -109,6 +72,60 @@ def default_of(obj: Any, name: str) -> Any:
     if default is inspect.Parameter.empty:
         raise TypeError(f"{obj.__name__}({name}=...) has no default")
     return default
+
+
+class ConfigPath(str):
+    """An absolute path from a config (a ``str``), with the text the file gave
+    (``.written``: what error messages and dumps show)."""
+
+    written: str
+
+    def __new__(cls, absolute: str | Path, written: str) -> ConfigPath:
+        obj = super().__new__(cls, str(absolute))
+        obj.written = written
+        return obj
+
+    def __getnewargs__(self) -> tuple[str, str]:  # pickling (DataLoader workers, torchrun)
+        return str(self), self.written
+
+    @property
+    def path(self) -> Path:
+        """The absolute path as a :class:`~pathlib.Path`."""
+        return Path(self)
+
+
+def resolve_path(text: str, base_dir: str | Path | None = None) -> ConfigPath:
+    """``text`` (``~`` expanded) made absolute against ``base_dir`` (default: the working
+    folder), symbolic links resolved for relative paths, as a :class:`ConfigPath`.
+
+    Raises:
+        ValueError: ``~user`` names no user.
+    """
+    if isinstance(text, ConfigPath):
+        return text
+    try:
+        p = Path(text).expanduser()
+    except RuntimeError as e:  # "~nobody/..."
+        raise ValueError(f"cannot expand {text!r}: {e}") from None
+    if not p.is_absolute():
+        p = (Path(base_dir if base_dir is not None else ".") / p).resolve()
+    return ConfigPath(p, text)
+
+
+def written(value: str) -> str:
+    """The text the config gave for a path field (the value itself if it is no
+    :class:`ConfigPath`)."""
+    return getattr(value, "written", value)
+
+
+def _resolve_in_context(value: str, info: ValidationInfo) -> ConfigPath:
+    base = (info.context or {}).get("base_dir") if isinstance(info.context, dict) else None
+    return resolve_path(value, base)
+
+
+#: A file named by a config: validated to an absolute :class:`ConfigPath`, dumped as written.
+FilePath = Annotated[str, AfterValidator(_resolve_in_context),
+                     PlainSerializer(written, return_type=str)]
 
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
@@ -148,7 +165,7 @@ class ObjectMaterialConfig(_Strict):
     metallic: Annotated[float, Field(ge=0, le=1)] = 0.0
     roughness: Annotated[float, Field(ge=0, le=1)] = 0.8
     emissive: Color3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
-    base_color_texture: str | None = Field(
+    base_color_texture: FilePath | None = Field(
         None, description="image file (sRGB, alpha used by MASK / BLEND), relative to the "
         "config file; primitives' UVs span [0, 1] over each face")
     alpha_mode: Literal["OPAQUE", "MASK", "BLEND"] = Field(
@@ -168,7 +185,8 @@ class ObjectConfig(_Strict):
     under a model, a box, a sphere), with its own transform and shadow flags."""
 
     name: str | None = None
-    mesh: str | None = Field(None, description="mesh / glTF file, relative to the config file")
+    mesh: FilePath | None = Field(None, description="mesh / glTF file, relative to the config "
+                                  "file")
     primitive: Primitive | None = Field(
         None, description="plane: `size` x `size` in XZ facing +Y, centred at the origin; box: "
         "a cube of side `size`; sphere: diameter `size` (an icosphere)")
@@ -201,9 +219,9 @@ class SceneConfig(_Strict):
     object is named after its file (sanitised; the path is added where two stems clash)
     and written to ``<out>/<config>/<object>/<camera>/``."""
 
-    mesh: str | None = Field(None, description="the main mesh / glTF scene (optional when "
+    mesh: FilePath | None = Field(None, description="the main mesh / glTF scene (optional when "
                              "`objects` is given), or a glob pattern naming a mesh set")
-    meshes_from: str | None = Field(
+    meshes_from: FilePath | None = Field(
         None, description="a mesh set listed in a text file: one mesh path per line, "
         "relative to the list file; blank lines and `#` comments skipped")
     transform: TransformConfig = Field(default_factory=TransformConfig)
@@ -359,7 +377,7 @@ class BackgroundImageConfig(_Strict):
     """An image behind the scene (:mod:`torchraster.background`): PNG / JPEG / ... (sRGB,
     decoded to linear) or ``.hdr`` / ``.exr`` (linear), relative to the config file."""
 
-    path: str = Field(description="the image file")
+    path: FilePath = Field(description="the image file")
     fit: Literal[FITS] = Field(  # type: ignore[valid-type]
         default_of(Renderer, "background_fit"), description="cover: fill the frame, crop "
         "the overflow; contain: fit inside, bars in `render.background`; stretch: fill, "
@@ -396,14 +414,6 @@ class FogConfig(_Strict):
     seed: Annotated[int, Field(ge=0)] = Field(default_of(Fog, "seed"),
                                               description="offset of the jitter pattern")
 
-    def fog(self) -> Fog | None:
-        """The :class:`~torchraster.shading.volumetric.Fog` of this block (None if disabled)."""
-        if not self.enabled:
-            return None
-        d = self.model_dump(exclude={"enabled", "max_distance"})
-        return Fog(**{**d, "color": tuple(d["color"]), "ambient": tuple(d["ambient"])},
-                   max_distance=math.inf if self.max_distance is None else self.max_distance)
-
 
 class DissolveConfig(_Strict):
     """The dissolve effect (:mod:`torchraster.dissolve`): surfaces are cut away where a seeded
@@ -423,10 +433,6 @@ class DissolveConfig(_Strict):
     octaves: Annotated[int, Field(ge=1, le=MAX_OCTAVES)] = default_of(Dissolve, "octaves")
     seed: Annotated[int, Field(ge=0, lt=2**63)] = Field(default_of(Dissolve, "seed"),
                                                         description="the noise pattern")
-
-    def build(self) -> Dissolve:
-        """The :class:`~torchraster.dissolve.Dissolve` of this block."""
-        return Dissolve(**{**self.model_dump(), "edge_color": tuple(self.edge_color)})
 
 
 class RenderConfig(_Strict):
@@ -510,7 +516,7 @@ class RenderConfig(_Strict):
 class EnvironmentConfig(_Strict):
     """An equirectangular HDR environment (``.hdr`` / ``.exr``), relative to the config."""
 
-    path: str
+    path: FilePath
     intensity: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 1.0
     rotation_deg: Finite = 0.0
     background: bool = True
@@ -583,10 +589,6 @@ class ShadowConfig(_Strict):
                              f"by: {_users_of(unused[0])}); remove it or change the filter")
         return self
 
-    def settings(self) -> ShadowSettings:
-        """The :class:`~torchraster.shading.shadows.ShadowSettings` of this block."""
-        return ShadowSettings(**self.model_dump(exclude={"enabled"}))
-
 
 class _LightConfigBase(_Strict):
     name: str | None = None
@@ -617,16 +619,6 @@ def _check_shadow_switch(light: Any) -> Any:
         raise ValueError(f"cast_shadows: {str(light.cast_shadows).lower()} contradicts "
                          f"shadows.enabled: {str(light.shadows.enabled).lower()}; give one")
     return light
-
-
-def _casts(light: Any) -> bool:
-    if light.shadows is not None:
-        return light.shadows.enabled
-    return bool(light.cast_shadows)
-
-
-def _shadow_settings(light: Any) -> ShadowSettings | None:
-    return light.shadows.settings() if light.shadows is not None else None
 
 
 class DirectionalLightConfig(_DirectionMixin, _LightConfigBase):
@@ -685,6 +677,14 @@ LightConfig = Annotated[
     Field(discriminator="type"),
 ]
 _LIGHT_LIST = TypeAdapter(list[LightConfig])
+
+
+def parse_lights(data: object) -> list:
+    """Validate a YAML/JSON list of light dicts into :data:`LightConfig` models.
+
+    Raises ``pydantic.ValidationError`` whose messages carry the key path (e.g. ``1.spot.range``).
+    """
+    return _LIGHT_LIST.validate_python(data)
 
 
 class DOFConfig(_Strict):
@@ -788,7 +788,10 @@ class SSRConfig(_Strict):
 
 
 class PostConfig(_Strict):
-    """The ``post:`` section of a render config."""
+    """The ``post:`` section of a render config. Leaving ``post:`` out means no tone
+    mapping: the linear image is clipped to [0, 1] and sRGB encoded. Giving it, even as
+    ``post: {}``, runs every stage at its default below (exposure, ACES tone mapping,
+    sRGB encoding)."""
 
     dof: DOFConfig = Field(default_factory=DOFConfig)
     bloom: BloomConfig = Field(default_factory=BloomConfig)
@@ -809,7 +812,8 @@ class MaterialOverride(_Strict):
     metallic: Annotated[float, Field(ge=0, le=1)] | None = None
     roughness: Annotated[float, Field(ge=0, le=1)] | None = None
     emissive: Color3 | None = None
-    base_color_texture: str | None = None  # image file (sRGB), relative to the config
+    base_color_texture: FilePath | None = Field(
+        None, description="image file (sRGB), relative to the config file")
 
 
 Channel = Literal["color", "radiance", "alpha", "depth", "position", "normal", "albedo", "metallic",
@@ -853,10 +857,6 @@ class RenderFile(_Strict):
         """The folder relative paths resolve against (the config file's folder)."""
         return self._base_dir
 
-    @base_dir.setter
-    def base_dir(self, value: str | Path) -> None:
-        self._base_dir = Path(value)
-
     @model_validator(mode="after")
     def _pbr_needs_light(self) -> RenderFile:
         lit = bool(self.lights) or self.environment is not None
@@ -876,739 +876,12 @@ class RenderFile(_Strict):
 
     def where(self, *loc: str | int) -> str:
         """``file:line: key.path`` of a key path (the nearest line found)."""
-        line = _line_of(self._lines, loc)
+        line = line_of(self._lines, loc)
         key = ".".join(str(p) for p in loc)
         return f"{self._source}:{line}: {key}" if line else f"{self._source}: {key}"
 
     def resolve(self, relative: str) -> Path:
-        """A path from the config, resolved against the config file's folder."""
+        """A path resolved against the config file's folder (the config's own path fields
+        are absolute already, resolved when it was validated)."""
         p = Path(relative).expanduser()
         return p if p.is_absolute() else (self.base_dir / p).resolve()
-
-
-# --------------------------------------------------------------------------- parsing
-
-
-def _expanded_size(node: yaml.Node, source: str) -> int:
-    """Number of nodes of the document with aliases expanded (memoised, so a "billion
-    laughs" document is measured in linear time); raises ConfigError past MAX_YAML_NODES
-    or on a recursive alias."""
-    sizes: dict[int, int] = {}
-    active: set[int] = set()
-
-    def size(n: yaml.Node) -> int:
-        key = id(n)
-        if key in sizes:
-            return sizes[key]
-        if key in active:
-            line = n.start_mark.line + 1
-            raise ConfigError(f"{source}:{line}: recursive YAML alias (a node that contains "
-                              "itself); configs cannot be recursive")
-        active.add(key)
-        total = 1
-        if isinstance(n, yaml.MappingNode):
-            total += sum(size(k) + size(v) for k, v in n.value)
-        elif isinstance(n, yaml.SequenceNode):
-            total += sum(size(v) for v in n.value)
-        active.discard(key)
-        sizes[key] = min(total, MAX_YAML_NODES + 1)
-        return sizes[key]
-
-    total = size(node)
-    if total > MAX_YAML_NODES:
-        raise ConfigError(f"{source}: YAML aliases expand to more than {MAX_YAML_NODES:,} "
-                          "values; refusing to load it (an alias bomb?)")
-    return total
-
-
-def _key_lines(node: yaml.Node) -> dict:
-    """Map every key path of a composed YAML tree to its 1-based line number (each node
-    visited once: aliased content keeps the line of its anchor)."""
-    out: dict = {}
-    seen: set[int] = set()
-    stack: list[tuple[yaml.Node, tuple]] = [(node, ())]
-    while stack:
-        n, path = stack.pop()
-        out.setdefault(path, n.start_mark.line + 1)
-        if id(n) in seen:
-            continue
-        seen.add(id(n))
-        if isinstance(n, yaml.MappingNode):
-            for key, value in n.value:
-                kp = path + (getattr(key, "value", str(key)),)
-                out.setdefault(kp, key.start_mark.line + 1)
-                stack.append((value, kp))
-        elif isinstance(n, yaml.SequenceNode):
-            stack.extend((item, path + (i,)) for i, item in enumerate(n.value))
-    return out
-
-
-_UNION_TAGS = ("ambient", "directional", "point", "spot")
-
-
-def _line_of(lines: dict, loc: Sequence) -> int | None:
-    """Line of the longest prefix of ``loc`` found in the YAML (pydantic adds union tags)."""
-    loc = tuple(int(p) if isinstance(p, str) and p.isdigit() else p for p in loc)
-    for n in range(len(loc), -1, -1):
-        cand = tuple(loc[:n])
-        if cand in lines:
-            return lines[cand]
-        stripped = tuple(p for p in cand if p not in _UNION_TAGS)
-        if stripped in lines:
-            return lines[stripped]
-    return None
-
-
-def _model_at(loc: Sequence) -> type[BaseModel] | None:
-    """The config model that holds the key at ``loc`` (for "did you mean" suggestions)."""
-    model: Any = RenderFile
-    for part in loc[:-1]:
-        if isinstance(part, int) or (isinstance(part, str) and part.isdigit()):
-            continue
-        if part in _UNION_TAGS:
-            model = {"ambient": AmbientLightConfig, "directional": DirectionalLightConfig,
-                     "point": PointLightConfig, "spot": SpotLightConfig}[part]
-            continue
-        field = model.model_fields.get(part) if isinstance(model, type) else None
-        if field is None:
-            return None
-        model = _inner_model(field.annotation)
-        if model is None:
-            return None
-    return model if isinstance(model, type) and issubclass(model, BaseModel) else None
-
-
-def _inner_model(annotation: Any) -> type[BaseModel] | None:
-    """The (single) pydantic model inside an annotation like ``list[X] | None``."""
-    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
-        return annotation
-    for arg in typing.get_args(annotation):
-        found = _inner_model(arg)
-        if found is not None:
-            return found
-    return None
-
-
-def _message(err: dict) -> str:
-    """A pydantic error message, with a suggestion for a misspelt key."""
-    if err["type"] != "extra_forbidden":
-        return err["msg"]
-    key = str(err["loc"][-1])
-    model = _model_at(err["loc"])
-    names = list(model.model_fields) if model is not None else []
-    close = difflib.get_close_matches(key, names, n=1)
-    hint = f"; did you mean {close[0]!r}?" if close else (
-        f"; expected one of {names}" if names else "")
-    return f"unknown key{hint}"
-
-
-def parse_config(text: str | bytes, source: str = "<string>",
-                 base_dir: Path | None = None) -> RenderFile:
-    """Validate YAML text into a :class:`RenderFile`.
-
-    Args:
-        text: the YAML document (bytes must be UTF-8).
-        source: the file name used in error messages.
-        base_dir: the folder relative paths resolve against (default: the working folder).
-
-    Returns:
-        The validated config.
-
-    Raises:
-        ConfigError: naming ``source``, the line and the key path of every problem.
-    """
-    if isinstance(text, bytes):
-        try:
-            text = text.decode("utf-8-sig")
-        except UnicodeDecodeError as e:
-            raise ConfigError(f"{source}: not UTF-8 text (invalid byte at offset {e.start}); "
-                              "save the config as UTF-8") from None
-    try:
-        node = yaml.compose(text, Loader=yaml.SafeLoader)
-        if node is not None:
-            _expanded_size(node, source)
-        data = yaml.safe_load(text)
-    except yaml.MarkedYAMLError as e:
-        mark = e.context_mark or e.problem_mark  # where the broken construct starts
-        line = mark.line + 1 if mark else "?"
-        detail = f"{e.context}; {e.problem}" if e.context else str(e.problem)
-        if e.problem_mark and mark is not e.problem_mark:
-            detail += f" (line {e.problem_mark.line + 1})"
-        raise ConfigError(f"{source}:{line}: malformed YAML: {detail}") from None
-    except yaml.YAMLError as e:
-        raise ConfigError(f"{source}: malformed YAML: {e}") from None
-    except RecursionError:
-        raise ConfigError(f"{source}: YAML nested too deeply") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"{source}: expected a mapping at the top level (scene:, cameras:, ...)")
-    lines = _key_lines(node) if node is not None else {}
-    try:
-        cfg = RenderFile.model_validate(data)
-    except ValidationError as e:
-        msgs = []
-        for err in e.errors():
-            loc = tuple(err["loc"])
-            key = ".".join(str(p) for p in loc) or "(top level)"
-            line = _line_of(lines, loc)
-            where = f"{source}:{line}" if line else source
-            msgs.append(f"{where}: {key}: {_message(err)}")
-        raise ConfigError("invalid render config\n  " + "\n  ".join(msgs)) from None
-    cfg.base_dir = base_dir if base_dir is not None else Path(".")
-    cfg._source, cfg._lines = source, lines
-    problems = _duplicate_cameras(cfg)
-    if problems:
-        raise ConfigError("invalid render config\n  " + "\n  ".join(problems))
-    return cfg
-
-
-def load_config(path: str | Path) -> RenderFile:
-    """Read and validate a YAML render config; relative paths resolve against its folder.
-
-    Raises:
-        ConfigError: naming the file (and line and key path) of every problem.
-    """
-    p = Path(path)
-    try:
-        data = p.read_bytes()
-    except IsADirectoryError:
-        raise ConfigError(f"{p}: is a folder, not a config file") from None
-    except OSError as e:
-        raise ConfigError(f"{p}: cannot read the config file ({e.strerror})") from None
-    return parse_config(data, source=str(p), base_dir=p.resolve().parent)
-
-
-_UNSAFE = re.compile(r"[^A-Za-z0-9._-]+")
-
-
-def safe_name(name: str) -> str:
-    """A file-system-safe name: letters, digits, ``.``, ``_`` and ``-`` kept, any other run
-    of characters replaced by ``_``, no leading dots (so never ``..``); never empty."""
-    cleaned = _UNSAFE.sub("_", name).lstrip(".")
-    return cleaned or "_"
-
-
-def camera_names(cfg: RenderFile) -> list[str]:
-    """The output folder name of every camera (sanitised ``name``, or ``view<index>``)."""
-    return [safe_name(c.name) if c.name is not None else f"view{i}"
-            for i, c in enumerate(cfg.cameras)]
-
-
-def view_names(cfg: RenderFile) -> list[list[str]]:
-    """The output name of every view of every camera entry: ``[name]`` for a single camera,
-    ``[name_000, name_001, ...]`` for ``random_orbits`` (``name`` as in :func:`camera_names`)."""
-    out = []
-    for base, cam in zip(camera_names(cfg), cfg.cameras, strict=True):
-        if cam.random_orbits is None:
-            out.append([base])
-        else:
-            count = cam.random_orbits.count
-            width = max(3, len(str(count - 1)))
-            out.append([f"{base}_{j:0{width}d}" for j in range(count)])
-    return out
-
-
-def _duplicate_cameras(cfg: RenderFile) -> list[str]:
-    seen: dict[str, int] = {}
-    problems = []
-    for i, names in enumerate(view_names(cfg)):
-        for name in names:
-            if name in seen and seen[name] != i:
-                problems.append(f"{cfg.where('cameras', i, 'name')}: camera name {name!r} is "
-                                f"used by cameras.{seen[name]} too; names must be unique "
-                                "(after sanitising to letters, digits, '.', '_', '-')")
-                break
-            seen.setdefault(name, i)
-    return problems
-
-
-# --------------------------------------------------------------------------- mesh sets
-
-
-def stable_seed(*parts: object) -> int:
-    """A seed in [0, 2**63) from ``parts`` (their ``str``), the same in every process and on
-    every machine (unlike ``hash``)."""
-    digest = hashlib.sha256("\x1f".join(str(p) for p in parts).encode()).digest()
-    return int.from_bytes(digest[:8], "little") >> 1
-
-
-@dataclass(frozen=True)
-class MeshSetEntry:
-    """One object of a mesh set: its output name, its file and where it was named (for
-    errors: ``list.txt:7`` or ``config.yaml:2: scene.mesh``)."""
-
-    name: str
-    path: Path
-    source: str
-
-
-_GLOB_MAGIC = re.compile(r"[*?[]")
-
-
-def is_mesh_set(cfg: RenderFile) -> bool:
-    """Whether the config names a set of objects (``scene.meshes_from``, or ``scene.mesh``
-    as a glob pattern that is not itself an existing file)."""
-    sc = cfg.scene
-    if sc.meshes_from is not None:
-        return True
-    return (sc.mesh is not None and _GLOB_MAGIC.search(sc.mesh) is not None
-            and not cfg.resolve(sc.mesh).is_file())
-
-
-def _listed_meshes(cfg: RenderFile) -> tuple[Path, list[tuple[int, Path]]]:
-    """The list file of ``scene.meshes_from`` and its entries ``(line, resolved path)``."""
-    listing = cfg.resolve(cfg.scene.meshes_from)
-    try:
-        text = listing.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as e:
-        reason = "is a folder" if listing.is_dir() else (
-            "file not found" if not listing.exists() else getattr(e, "strerror", None) or e)
-        raise ConfigError(f"{cfg.where('scene', 'meshes_from')}: {listing}: {reason}") from None
-    entries = []
-    for number, line in enumerate(text.splitlines(), 1):
-        entry = line.strip()
-        if entry and not entry.startswith("#"):
-            path = Path(entry).expanduser()
-            entries.append((number, path if path.is_absolute() else
-                            (listing.parent / path).resolve()))
-    return listing, entries
-
-
-def _unique_object_names(paths: list[Path], base: Path) -> list[str]:
-    """Sanitised file stems; where stems clash, the path relative to ``base`` (suffix
-    kept); any clash left gets ``-2``, ``-3``, ..."""
-    stems = [safe_name(p.stem) for p in paths]
-    counts = Counter(stems)
-    names = [safe_name(os.path.relpath(p, base).replace(os.sep, "_")) if counts[s] > 1 else s
-             for p, s in zip(paths, stems, strict=True)]
-    seen: Counter = Counter()
-    out = []
-    for n in names:
-        seen[n] += 1
-        out.append(n if seen[n] == 1 else f"{n}-{seen[n]}")
-    return out
-
-
-def mesh_set(cfg: RenderFile) -> list[MeshSetEntry]:
-    """The objects of a mesh set config in order (glob matches sorted; list entries in file
-    order, duplicates dropped), each with a unique sanitised name. Empty when nothing
-    matches (:func:`check_config` reports it).
-
-    Raises:
-        ConfigError: the list file of ``scene.meshes_from`` cannot be read.
-    """
-    sc = cfg.scene
-    if sc.meshes_from is not None:
-        listing, entries = _listed_meshes(cfg)
-        first: dict[Path, int] = {}
-        for number, path in entries:
-            first.setdefault(path, number)
-        paths = list(first)
-        sources = [f"{listing}:{first[p]}" for p in paths]
-        base = listing.parent
-    else:
-        pattern = cfg.resolve(sc.mesh)
-        paths = sorted(Path(m) for m in glob.glob(str(pattern), recursive=True)
-                       if os.path.isfile(m))
-        sources = [cfg.where("scene", "mesh")] * len(paths)
-        parts = pattern.parts  # names are made relative to the folder the pattern starts in
-        first = next((i for i, part in enumerate(parts) if _GLOB_MAGIC.search(part)),
-                     len(parts) - 1)
-        base = Path(*parts[:max(first, 1)])
-    names = _unique_object_names(paths, base)
-    return [MeshSetEntry(n, p, src) for n, p, src in zip(names, paths, sources, strict=True)]
-
-
-def _mesh_set_problems(cfg: RenderFile) -> list[str]:
-    sc = cfg.scene
-    if sc.meshes_from is None:
-        return [] if mesh_set(cfg) else [
-            f"{cfg.where('scene', 'mesh')}: no file matches {sc.mesh!r} (in "
-            f"{cfg.resolve('.')})"]
-    try:
-        listing, entries = _listed_meshes(cfg)
-    except ConfigError as e:
-        return [str(e)]
-    problems, seen = [], {}
-    for number, path in entries:
-        if path in seen:
-            problems.append(f"{listing}:{number}: {path.name} is listed twice (first at "
-                            f"line {seen[path]})")
-        elif path.is_dir():
-            problems.append(f"{listing}:{number}: {path} is a folder, expected a mesh file")
-        elif not path.is_file():
-            problems.append(f"{listing}:{number}: file not found: {path}")
-        seen.setdefault(path, number)
-    if not entries:
-        problems.append(f"{cfg.where('scene', 'meshes_from')}: {listing} lists no mesh")
-    return problems
-
-
-def object_name(cfg: RenderFile) -> str:
-    """The object name of a config that is not a mesh set: its mesh's sanitised stem, or
-    ``scene`` for a scene built from ``objects`` only."""
-    return safe_name(Path(cfg.scene.mesh).stem) if cfg.scene.mesh is not None else "scene"
-
-
-@dataclass(frozen=True)
-class PlannedCamera:
-    """One view of one object: its name, its camera (``random_orbits`` drawn into an
-    ``orbit``; ``name`` set) and its seed (:func:`stable_seed`)."""
-
-    name: str
-    camera: CameraConfig
-    seed: int
-
-
-def expand_cameras(cfg: RenderFile, obj: str, seed: int = 0) -> list[PlannedCamera]:
-    """The views of object ``obj``: one per camera entry, ``count`` per ``random_orbits``
-    entry (drawn from ``stable_seed(seed, random_orbits.seed, obj, view name)``).
-
-    Args:
-        cfg: the config.
-        obj: the object's name (the same object gets the same views in every process).
-        seed: a seed mixed into every view's (``RenderDataset(seed=...)``; 0 on the
-            command line).
-    """
-    out = []
-    for cam, names in zip(cfg.cameras, view_names(cfg), strict=True):
-        ro = cam.random_orbits
-        for name in names:
-            view_seed = stable_seed(seed, ro.seed if ro is not None else 0, obj, name)
-            update: dict[str, Any] = {"name": name}
-            if ro is not None:
-                update.update(random_orbits=None, orbit=ro.draw(view_seed))
-            out.append(PlannedCamera(name, cam.model_copy(update=update), view_seed))
-    return out
-
-
-def object_config(cfg: RenderFile, mesh: Path | str | None,
-                  cameras: Sequence[CameraConfig]) -> RenderFile:
-    """A copy of ``cfg`` that renders one object (``mesh``, an absolute path or None for a
-    scene of ``objects`` only) with the given concrete cameras (names set, no
-    ``random_orbits``)."""
-    scene = cfg.scene.model_copy(update={"mesh": None if mesh is None else str(mesh),
-                                         "meshes_from": None})
-    return cfg.model_copy(update={"scene": scene, "cameras": list(cameras)})
-
-
-def check_config(cfg: RenderFile) -> None:
-    """Find, in one pass before rendering, every problem validation cannot see: missing or
-    unreadable files (mesh, environment, textures) and degenerate cameras.
-
-    Raises:
-        ConfigError: listing each problem as ``file:line: key.path: message``.
-    """
-    problems = []
-
-    def need_file(loc: tuple, relative: str) -> None:
-        p = cfg.resolve(relative)
-        if p.is_dir():
-            problems.append(f"{cfg.where(*loc)}: {p} is a folder, expected a file")
-        elif not p.is_file():
-            problems.append(f"{cfg.where(*loc)}: file not found: {p}")
-
-    mesh_set_config = is_mesh_set(cfg)
-    if mesh_set_config:  # files checked to exist; textures when each object loads
-        problems += _mesh_set_problems(cfg)
-    meshes = [(("scene", "mesh"), cfg.scene.mesh)] if (
-        cfg.scene.mesh is not None and not mesh_set_config) else []
-    meshes += [(("scene", "objects", i, "mesh"), o.mesh)
-               for i, o in enumerate(cfg.scene.objects) if o.mesh is not None]
-    for loc, relative in meshes:
-        need_file(loc, relative)
-        mesh = cfg.resolve(relative)
-        if mesh.is_file() and not cfg.scene.allow_missing_textures:
-            from .io import missing_textures
-
-            missing = missing_textures(mesh)
-            if missing:
-                problems.append(f"{cfg.where(*loc)}: {mesh.name} refers to missing texture "
-                                f"file(s) {', '.join(missing)} (set "
-                                "scene.allow_missing_textures: true to render without them)")
-    if cfg.environment is not None:
-        need_file(("environment", "path"), cfg.environment.path)
-    if cfg.render.background_image is not None:
-        need_file(("render", "background_image", "path"), cfg.render.background_image.path)
-    for i, m in enumerate(cfg.materials):
-        if m.base_color_texture is not None:
-            need_file(("materials", i, "base_color_texture"), m.base_color_texture)
-    for i, cam in enumerate(cfg.cameras):
-        if cam.look_at is None:
-            continue
-        eye, target, up = (torch.tensor(v, dtype=torch.float64) for v in (
-            cam.look_at.eye, cam.look_at.target, cam.look_at.up))
-        forward = target - eye
-        if float(forward.norm()) <= 1e-12 * max(1.0, float(eye.norm())):
-            problems.append(f"{cfg.where('cameras', i, 'look_at', 'eye')}: eye and target "
-                            "are the same point; the camera has no direction")
-        elif float(torch.linalg.cross(forward, up).norm()) <= 1e-9 * float(
-                forward.norm() * up.norm()):
-            problems.append(f"{cfg.where('cameras', i, 'look_at', 'up')}: up is parallel to "
-                            "the view direction (or zero); pick another up vector")
-    if problems:
-        raise ConfigError("invalid render config\n  " + "\n  ".join(problems))
-
-
-# --------------------------------------------------------------------------- builders
-
-
-def build_post_chain(cfg: PostConfig | dict | None = None) -> PostChain:
-    """The :class:`~torchraster.post.PostChain` of a ``post:`` section (a
-    :class:`PostConfig` or the raw mapping; None: every stage at its default).
-
-    Raises:
-        pydantic.ValidationError: for an invalid raw mapping.
-    """
-    cfg = cfg if isinstance(cfg, PostConfig) else PostConfig.model_validate(cfg or {})
-    d, b, e, a, t = cfg.dof, cfg.bloom, cfg.exposure, cfg.auto_exposure, cfg.tonemap
-    return PostChain(
-        dof=DepthOfField(focus_distance=d.focus_distance, focal_length_mm=d.focal_length_mm,
-                         f_number=d.f_number, sensor_width_mm=d.sensor_width_mm,
-                         max_coc=d.max_coc, levels=d.levels, enabled=d.enabled),
-        bloom=Bloom(threshold=b.threshold, knee=b.knee, intensity=b.intensity,
-                    radius=b.radius, levels=b.levels, karis=b.karis, enabled=b.enabled),
-        exposure=Exposure(ev=e.ev, enabled=e.enabled and not a.enabled),
-        auto_exposure=AutoExposure(key=a.key, min_ev=a.min_ev, max_ev=a.max_ev,
-                                   compensation=e.ev if e.enabled else 0.0,
-                                   metering=a.metering, percentile_low=a.percentile_low,
-                                   percentile_high=a.percentile_high, rate=a.rate,
-                                   enabled=a.enabled),
-        tonemap=ToneMap(curve=t.curve, white=t.white, enabled=t.enabled),
-        encode=EncodeSRGB(enabled=cfg.encode.enabled),
-    )
-
-
-def build_ssao(cfg: PostConfig | SSAOConfig) -> SSAO:
-    """The SSAO module of ``post.ssao`` (or an :class:`SSAOConfig`)."""
-    c = cfg.ssao if isinstance(cfg, PostConfig) else cfg
-    return SSAO(radius=c.radius, samples=c.samples, bias=c.bias, softness=c.softness,
-                blur=c.blur, enabled=c.enabled)
-
-
-def build_ssr(cfg: PostConfig | SSRConfig) -> SSR:
-    """The SSR module of ``post.ssr`` (or an :class:`SSRConfig`)."""
-    c = cfg.ssr if isinstance(cfg, PostConfig) else cfg
-    return SSR(max_steps=c.max_steps, thickness=c.thickness, max_roughness=c.max_roughness,
-               edge_fade=c.edge_fade, refine_steps=c.refine_steps,
-               max_distance=c.max_distance, blur=c.blur, enabled=c.enabled)
-
-
-def build_renderer(cfg: RenderFile, with_environment: bool) -> Renderer:
-    """The :class:`~torchraster.Renderer` of a config's ``render:`` (and ``post.ssao``,
-    ``post.ssr``)."""
-    r = cfg.render
-    ssao = build_ssao(cfg.post) if cfg.post is not None and cfg.post.ssao.enabled else None
-    ssr = build_ssr(cfg.post) if cfg.post is not None and cfg.post.ssr.enabled else None
-    options = r.toon.model_dump() if r.toon is not None else None
-    image = None
-    if r.background_image is not None:
-        path = cfg.resolve(r.background_image.path)
-        try:
-            image = load_background(path)
-        except (OSError, ValueError) as e:
-            where = cfg.where("render", "background_image", "path")
-            raise ConfigError(f"{where}: {e}") from None
-    return Renderer(r.size, shading=r.shading, shading_options=options,
-                    background_image=image,
-                    background_fit=r.background_image.fit if image is not None else "cover",
-                    dissolve=r.dissolve.build() if r.dissolve is not None else None,
-                    supersample=r.supersample,
-                    cull_backfaces=r.cull_backfaces, background=r.background,
-                    environment_background=bool(with_environment and cfg.environment
-                                                and cfg.environment.background),
-                    texture_filter=r.texture_filter, max_anisotropy=r.max_anisotropy,
-                    ssao=ssao, ssr=ssr, alpha_layers=r.alpha_layers,
-                    antialias=r.antialias, fog=r.fog.fog() if r.fog is not None else None,
-                    multiscatter=r.multiscatter)
-
-
-def parse_lights(data: object) -> list:
-    """Validate a YAML/JSON list of light dicts into :data:`LightConfig` models.
-
-    Raises ``pydantic.ValidationError`` whose messages carry the key path (e.g. ``1.spot.range``).
-    """
-    return _LIGHT_LIST.validate_python(data)
-
-
-def lights_from_config(
-    configs: Sequence[object],
-    batch: int = 1,
-    device: torch.device | str | None = None,
-    dtype: torch.dtype = torch.float32,
-) -> Lights:
-    """Build :class:`Lights` tensors (the same lights for each of ``batch`` scenes).
-
-    Args:
-        configs: :data:`LightConfig` models or plain dicts (validated with
-            :func:`parse_lights`).
-        batch: batch size B >= 1.
-        device, dtype: of the created tensors.
-
-    Returns:
-        Lights with ``ambient (B, 9, 3)`` (sum of all ambient lights) or None, and
-        directional / point / spot containers with ``L`` = number of lights of each type
-        (None for types that are absent).
-    """
-    if not isinstance(batch, int) or isinstance(batch, bool) or batch < 1:
-        raise ValueError(f"batch: expected a positive int, got {batch!r}")
-    cfgs = parse_lights([c.model_dump(exclude_unset=True) if isinstance(c, BaseModel) else c
-                        for c in configs])
-
-    def tensor(rows: list, shape_tail: tuple[int, ...] = ()) -> torch.Tensor:
-        t = torch.tensor(rows, device=device, dtype=dtype).reshape(1, len(rows), *shape_tail)
-        return t.expand(batch, *t.shape[1:]).contiguous()
-
-    def shadows(rows: list) -> torch.Tensor:
-        t = torch.tensor(rows, device=device, dtype=torch.bool).reshape(1, -1)
-        return t.expand(batch, -1).contiguous()
-
-    def inf_if_none(r: float | None) -> float:
-        return math.inf if r is None else r
-
-    by_type: dict[str, list] = {"ambient": [], "directional": [], "point": [], "spot": []}
-    for c in cfgs:
-        by_type[c.type].append(c)
-
-    ambient = None
-    if by_type["ambient"]:
-        sh = torch.zeros(9, 3, dtype=torch.float64)
-        for c in by_type["ambient"]:
-            if c.sh is not None:
-                sh += torch.tensor(c.sh, dtype=torch.float64) * c.intensity
-            else:
-                sh[0] += torch.tensor(c.color, dtype=torch.float64) * c.intensity / SH_C0
-        ambient = sh.to(device=device, dtype=dtype)[None].expand(batch, 9, 3).contiguous()
-
-    directional = point = spot = None
-    if d := by_type["directional"]:
-        directional = DirectionalLights(
-            direction=tensor([c.direction for c in d], (3,)),
-            color=tensor([c.color for c in d], (3,)),
-            intensity=tensor([c.intensity for c in d]),
-            cast_shadows=shadows([_casts(c) for c in d]),
-            shadow=tuple(_shadow_settings(c) for c in d),
-        )
-    if p := by_type["point"]:
-        point = PointLights(
-            position=tensor([c.position for c in p], (3,)),
-            color=tensor([c.color for c in p], (3,)),
-            intensity=tensor([c.intensity for c in p]),
-            range=tensor([inf_if_none(c.range) for c in p]),
-            cast_shadows=shadows([_casts(c) for c in p]),
-            shadow=tuple(_shadow_settings(c) for c in p),
-        )
-    if s := by_type["spot"]:
-        spot = SpotLights(
-            position=tensor([c.position for c in s], (3,)),
-            direction=tensor([c.direction for c in s], (3,)),
-            color=tensor([c.color for c in s], (3,)),
-            intensity=tensor([c.intensity for c in s]),
-            range=tensor([inf_if_none(c.range) for c in s]),
-            inner_cone_angle=tensor([c.inner_cone_angle for c in s]),
-            outer_cone_angle=tensor([c.outer_cone_angle for c in s]),
-            cast_shadows=shadows([_casts(c) for c in s]),
-            shadow=tuple(_shadow_settings(c) for c in s),
-        )
-    return Lights(ambient=ambient, directional=directional, point=point, spot=spot)
-
-
-# --------------------------------------------------------------------------- reference
-
-
-def _type_name(annotation: Any) -> str:
-    """A short readable type of a field annotation (``float >= 0``, ``[float] x 3``, ...)."""
-    origin = typing.get_origin(annotation)
-    args = typing.get_args(annotation)
-    if origin is Annotated:
-        base, *meta = args
-        text = _type_name(base)
-        for m in meta:
-            for attr, sym in (("ge", ">="), ("gt", ">"), ("le", "<="), ("lt", "<")):
-                for c in getattr(m, "metadata", [m]):
-                    if getattr(c, attr, None) is not None:
-                        text += f" {sym} {getattr(c, attr):g}"
-            lo, hi = getattr(m, "min_length", None), getattr(m, "max_length", None)
-            for c in getattr(m, "metadata", []):
-                lo = getattr(c, "min_length", lo)
-                hi = getattr(c, "max_length", hi)
-            if lo is not None and lo == hi:
-                text += f" (exactly {lo})"
-            elif lo:
-                text += f" (at least {lo})"
-        return text
-    if origin is Literal:
-        return " \\| ".join(repr(a) for a in args)
-    if origin in (list, Sequence):
-        return f"list of {_type_name(args[0])}" if args else "list"
-    if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)):
-        return " or ".join(_type_name(a) for a in args if a is not type(None)) + (
-            " or null" if type(None) in args else "")
-    if isinstance(annotation, type):
-        if issubclass(annotation, BaseModel):
-            return f"[{annotation.__name__}](#{annotation.__name__.lower()})"
-        return annotation.__name__
-    return str(annotation).replace("typing.", "")
-
-
-def _default_text(field: Any) -> str:
-    if field.is_required():
-        return "**required**"
-    value = field.default_factory() if field.default_factory is not None else field.default
-    if isinstance(value, BaseModel):
-        return "(section defaults)"
-    if isinstance(value, float) and math.isfinite(value):
-        return f"`{value:g}`"
-    return f"`{value!r}`" if not isinstance(value, Path) else f"`{value}`"
-
-
-def config_reference() -> str:
-    """The config reference as Markdown, generated from the pydantic models (every key with
-    its type, bounds, default and description). ``torchraster schema`` prints it;
-    ``scripts/make_config_docs.py`` writes it to ``docs/config.md``."""
-    order: list[type[BaseModel]] = []
-
-    def visit(model: type[BaseModel]) -> None:
-        if model in order:
-            return
-        order.append(model)
-        for field in model.model_fields.values():
-            for sub in _models_in(field.annotation):
-                visit(sub)
-
-    visit(RenderFile)
-    out = ["# Render config reference", "",
-           "Generated from the pydantic models in `torchraster/config.py` by "
-           "`python scripts/make_config_docs.py` (also `torchraster schema`). Unknown keys "
-           "are errors; paths are relative to the config file; `resolution` is `[H, W]` "
-           "(or one int for a square image). Lights are a list of entries with a `type`.", ""]
-    for model in order:
-        out += [f"## {model.__name__}", ""]
-        doc = inspect.getdoc(model) or ""
-        if doc and model.__module__ == __name__:
-            out += [doc, ""]
-        out += ["| key | type | default | description |", "|---|---|---|---|"]
-        for name, field in model.model_fields.items():
-            if field.exclude:
-                continue
-            desc = (field.description or "").replace("|", "\\|").replace("\n", " ")
-            out.append(f"| `{name}` | {_type_name(field.annotation)} | "
-                       f"{_default_text(field)} | {desc} |")
-        out.append("")
-    return "\n".join(out)
-
-
-def _models_in(annotation: Any) -> list[type[BaseModel]]:
-    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
-        return [annotation]
-    found = []
-    for arg in typing.get_args(annotation):
-        found += _models_in(arg)
-    return found
-
-
-__all__ = [
-    "ConfigError", "RenderFile", "build_post_chain", "build_renderer", "build_ssao", "build_ssr",
-    "camera_names", "check_config", "config_reference", "default_of", "expand_cameras",
-    "is_mesh_set", "lights_from_config", "load_config", "mesh_set", "object_config",
-    "object_name", "parse_config", "parse_lights", "safe_name", "stable_seed", "view_names",
-]

@@ -1,0 +1,69 @@
+"""Checks of a validated config that validation cannot make: files that must exist (meshes,
+their textures, environment, images) and degenerate cameras, all found in one pass."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from .schema import ConfigError, RenderFile
+from .views import is_mesh_set, mesh_set_problems
+
+
+def check_config(cfg: RenderFile) -> None:
+    """Find, in one pass before rendering, every problem validation cannot see: missing or
+    unreadable files (mesh, environment, textures) and degenerate cameras.
+
+    Raises:
+        ConfigError: listing each problem as ``file:line: key.path: message``.
+    """
+    problems = []
+
+    def need_file(loc: tuple, path: str) -> None:
+        p = Path(path)
+        if p.is_dir():
+            problems.append(f"{cfg.where(*loc)}: {p} is a folder, expected a file")
+        elif not p.is_file():
+            problems.append(f"{cfg.where(*loc)}: file not found: {p}")
+
+    mesh_set_config = is_mesh_set(cfg)
+    if mesh_set_config:  # files checked to exist; textures when each object loads
+        problems += mesh_set_problems(cfg)
+    meshes = [(("scene", "mesh"), cfg.scene.mesh)] if (
+        cfg.scene.mesh is not None and not mesh_set_config) else []
+    meshes += [(("scene", "objects", i, "mesh"), o.mesh)
+               for i, o in enumerate(cfg.scene.objects) if o.mesh is not None]
+    for loc, path in meshes:
+        need_file(loc, path)
+        mesh = Path(path)
+        if mesh.is_file() and not cfg.scene.allow_missing_textures:
+            from ..io import missing_textures
+
+            missing = missing_textures(mesh)
+            if missing:
+                problems.append(f"{cfg.where(*loc)}: {mesh.name} refers to missing texture "
+                                f"file(s) {', '.join(missing)} (set "
+                                "scene.allow_missing_textures: true to render without them)")
+    if cfg.environment is not None:
+        need_file(("environment", "path"), cfg.environment.path)
+    if cfg.render.background_image is not None:
+        need_file(("render", "background_image", "path"), cfg.render.background_image.path)
+    for i, m in enumerate(cfg.materials):
+        if m.base_color_texture is not None:
+            need_file(("materials", i, "base_color_texture"), m.base_color_texture)
+    for i, cam in enumerate(cfg.cameras):
+        if cam.look_at is None:
+            continue
+        eye, target, up = (torch.tensor(v, dtype=torch.float64) for v in (
+            cam.look_at.eye, cam.look_at.target, cam.look_at.up))
+        forward = target - eye
+        if float(forward.norm()) <= 1e-12 * max(1.0, float(eye.norm())):
+            problems.append(f"{cfg.where('cameras', i, 'look_at', 'eye')}: eye and target "
+                            "are the same point; the camera has no direction")
+        elif float(torch.linalg.cross(forward, up).norm()) <= 1e-9 * float(
+                forward.norm() * up.norm()):
+            problems.append(f"{cfg.where('cameras', i, 'look_at', 'up')}: up is parallel to "
+                            "the view direction (or zero); pick another up vector")
+    if problems:
+        raise ConfigError("invalid render config\n  " + "\n  ".join(problems))
