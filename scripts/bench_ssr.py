@@ -7,9 +7,10 @@ pixels the reference covers of max_c |SSR reflection - reference| (a miss counts
 whole reference colour, so lost hits and wrong colours both count); "hit" is the fraction
 of those pixels SSR reports a hit for (they are at most 1 px off at silhouettes and miss
 where the reflected rays leave the frame). Time: the SSR module alone (median), and as a
-fraction of the G-buffer render.
+fraction of the G-buffer render; "steps run" is the march iterations actually run.
 
     python scripts/bench_ssr.py            # table -> docs/benchmarks.md, section ssr
+    python scripts/bench_ssr.py --baseline HEAD   # also time the committed ssr.py
     python scripts/bench_ssr.py --picture  # docs/images/ssr_floor.png
 """
 
@@ -17,19 +18,24 @@ from __future__ import annotations
 
 import argparse
 import os
+import statistics
+import subprocess
 import sys
 import time
+import types
 from pathlib import Path
 
 import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from benchmd import markdown_table, median_time, update_section  # noqa: E402
+from benchmd import markdown_table, update_section  # noqa: E402
 
 import torchraster as tr  # noqa: E402
 from torchraster.camera import look_at, perspective  # noqa: E402
 from torchraster.post import SSR, EncodeSRGB, ToneMap  # noqa: E402
+from torchraster.post import ssr as ssr_module  # noqa: E402
+from torchraster.post.ssao import camera_intrinsics  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 CHANNELS = ["depth", "normal", "roughness", "metallic", "albedo", "mask"]
@@ -58,32 +64,64 @@ def quad_scene(mirror_view: bool = False):
     return scene, view, perspective(50.0, 1.0, 0.1, 50.0)
 
 
-def measure(res: int, steps_list: list[int], repeats: int) -> list[list[object]]:
+def baseline_module(rev: str):
+    """``torchraster/post/ssr.py`` as it was at git revision ``rev``, imported as a module of
+    the current package (its relative imports resolve to today's code)."""
+    src = subprocess.run(["git", "show", f"{rev}:torchraster/post/ssr.py"], cwd=ROOT,
+                         capture_output=True, text=True, check=True).stdout
+    mod = types.ModuleType("torchraster.post._ssr_baseline")
+    mod.__package__ = "torchraster.post"
+    exec(compile(src, f"{rev}:torchraster/post/ssr.py", "exec"), mod.__dict__)  # noqa: S102
+    return mod
+
+
+def measure(res: int, steps_list: list[int], repeats: int, baseline=None):  # noqa: ANN001
+    """Rows: error, hit rate, march steps run, and median times of the G-buffer render,
+    the baseline SSR (if any) and today's SSR, interleaved in one loop (same load)."""
     scene, view, proj = quad_scene()
     renderer = tr.Renderer(res, shading="unlit")
-    t_frame = median_time(lambda: renderer(scene, view, proj, channels=CHANNELS), repeats)
     out = renderer(scene, view, proj, channels=CHANNELS)
     g = out.gbuffer
     n_view = torch.einsum("ij,bjhw->bihw", view[0, :3, :3], g["normal"])
     ref_scene, ref_view, _ = quad_scene(mirror_view=True)
     ref = renderer(ref_scene, ref_view, proj)
     seen = (ref.alpha[0, 0] > 0) & (g["roughness"][0, 0] == 0)
+    k = camera_intrinsics(proj, None, (1, res, res))
     rows = []
     for steps in steps_list:
-        ssr = SSR(max_steps=steps, edge_fade=0.0)
+        mods = {"after": ssr_module} | ({"before": baseline} if baseline else {})
+        ssrs = {name: m.SSR(max_steps=steps, edge_fade=0.0) for name, m in mods.items()}
 
-        def run(ssr=ssr):  # noqa: ANN001, ANN202
-            return ssr(out.image, g["depth"], n_view, g["roughness"], g["metallic"],
-                       g["albedo"], projection=proj, return_maps=True)
+        def run(name: str, ssrs=ssrs):  # noqa: ANN001, ANN202
+            return ssrs[name](out.image, g["depth"], n_view, g["roughness"], g["metallic"],
+                              g["albedo"], projection=proj, return_maps=True)
 
-        t = median_time(run, repeats)
-        maps = run()
+        jobs = {"gbuffer": lambda: renderer(scene, view, proj, channels=CHANNELS)}
+        jobs |= {name: (lambda name=name: run(name)) for name in mods}
+        times: dict[str, list[float]] = {name: [] for name in jobs}
+        for rep in range(repeats + 1):  # the first round warms up
+            for name, fn in jobs.items():
+                t = time.perf_counter()
+                fn()
+                if rep:
+                    times[name].append(time.perf_counter() - t)
+        t = {name: statistics.median(v) for name, v in times.items()}
+        maps = run("after")
+        same = "-" if not baseline else ("yes" if all(
+            torch.equal(a, b) for a, b in zip(maps, run("before"), strict=True)) else "NO")
+        stats: dict = {}
+        ssr_module.trace_reflections(out.image, g["depth"], n_view, g["roughness"], k,
+                                     max_steps=steps, stats=stats)
         refl = torch.where(maps.confidence > 0, maps.reflection, torch.zeros_like(
             maps.reflection))
         err = (refl[0] - ref.image[0]).abs().amax(0)[seen]
         hit = float((maps.confidence[0, 0] > 0)[seen].float().mean())
-        rows.append([f"{res}x{res}", steps, float(err.mean()), f"{100 * hit:.1f} %",
-                     t * 1000, f"{100 * t / t_frame:.0f} %"])
+        row = [f"{res}x{res}", steps, float(err.mean()), f"{100 * hit:.1f} %",
+               stats["steps"], t["gbuffer"] * 1000]
+        if baseline:
+            row += [t["before"] * 1000, f"{t['before'] / t['gbuffer']:.2f}x"]
+        row += [t["after"] * 1000, f"{t['after'] / t['gbuffer']:.2f}x", same]
+        rows.append(row)
         print(rows[-1], flush=True)
     return rows
 
@@ -128,6 +166,10 @@ def main() -> None:
     ap.add_argument("--picture", action="store_true", help="write docs/images/ssr_floor.png")
     ap.add_argument("--quick", action="store_true", help="small sizes, no docs update")
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--steps", type=int, nargs="+", default=[16, 32, 64, 4096],
+                    help="max_steps values")
+    ap.add_argument("--baseline", metavar="REV",
+                    help="also time torchraster/post/ssr.py of this git revision (e.g. HEAD)")
     ap.add_argument("--threads", type=int, default=1,
                     help="torch threads (1: steadier times on a shared machine)")
     args = ap.parse_args()
@@ -136,14 +178,20 @@ def main() -> None:
         picture(ROOT / "docs" / "images" / "ssr_floor.png")
         return
     t0 = time.perf_counter()
+    baseline = baseline_module(args.baseline) if args.baseline else None
     sizes = [64, 128] if args.quick else [128, 256, 512]
-    steps = [8, 16, 32, 64, 128]
-    rows = [r for res in sizes for r in measure(res, steps, args.repeats)]
-    table = markdown_table(["resolution", "max_steps", "mean error", "hit", "SSR ms",
-                            "SSR / G-buffer frame"], rows)
+    rows = [r for res in sizes for r in measure(res, args.steps, args.repeats, baseline)]
+    head = ["resolution", "max_steps", "mean error", "hit", "steps run", "G-buffer ms"]
+    if baseline:
+        head += [f"SSR ms ({args.baseline})", f"/ G-buffer ({args.baseline})"]
+    head += ["SSR ms", "SSR / G-buffer", "same image"]
+    table = markdown_table(head, rows)
     print(table)
     if args.quick:
         return
+    before = (f" Columns marked `{args.baseline}` time the SSR module as it was at that "
+              "git revision (loaded by the script, timed in the same loop; \"same "
+              "image\": its SSRMaps are bit-identical to today's)." if baseline else "")
     body = (f"## Screen-space reflections: error against march steps and resolution "
             f"({time.perf_counter() - t0:.0f} s)\n\n"
             "A textured quad above a mirror floor; reference: the quad rendered with the "
@@ -151,11 +199,13 @@ def main() -> None:
             "error: max-channel |reflection - reference| over the floor pixels the "
             "reference covers, a miss counting as the whole reference colour (texture "
             "values in [0, 1]). The rest of the error is the 1-pixel silhouette band and "
-            "reflections leaving the frame, which SSR cannot know. SSR time as a fraction "
-            "of the unlit G-buffer render of the same frame. Load average during the run: "
+            "reflections leaving the frame, which SSR cannot know. \"steps run\": march "
+            "iterations actually run (the march ends when every ray has hit or missed; "
+            "`max_steps` is only a cap). Times: medians of the unlit G-buffer render and "
+            "of the SSR module on that G-buffer, interleaved in one loop." + before +
+            " Load average during the run: "
             f"{os.getloadavg()[0]:.1f} (times on a loaded machine are noisy; the error "
-            "columns are deterministic). The error stops falling at 32 steps here; the "
-            "default 64 leaves room for longer rays in deeper scenes.\n\n" + table)
+            "columns are deterministic).\n\n" + table)
     update_section("ssr", body)
 
 

@@ -13,7 +13,15 @@ import torch.nn.functional as F
 import torchraster as tr
 from torchraster.camera import look_at, perspective
 from torchraster.post import SSR
-from torchraster.post.ssr import specular_weight, trace_reflections
+from torchraster.post.ssao import camera_intrinsics
+from torchraster.post.ssr import (
+    MAX_REFINE_STEPS,
+    MAX_STEPS,
+    SSRMaps,
+    march_step_bound,
+    specular_weight,
+    trace_reflections,
+)
 
 N = 48
 F_PX = N / 2 / math.tan(math.radians(30))  # 60 degree field of view
@@ -238,6 +246,33 @@ def test_gradcheck_image_and_fallback() -> None:
     assert torch.autograd.gradcheck(f, (img, fb), eps=1e-6, atol=1e-6, fast_mode=True)
 
 
+def test_gradcheck_roughness_through_the_cone_blur_and_fade() -> None:
+    """Issue 21: roughness was detached before the trace, so the cone-blur level of the
+    hit colour and the confidence fade had no gradient (numeric 6.18 vs analytic 12.86).
+    A glossy floor (roughness 0.2-0.55: footprints of 1-5 px, the fade over the last
+    quarter of [0, 0.6]) reflecting a crease of the wall; float64 finite differences."""
+    image, depth, normal, _, _, floor = _floor_and_wall()
+    sl = (slice(None), slice(None), slice(30, 38), slice(20, 28))
+    img, dep, nrm, fl = image[sl], depth[sl], normal[sl], floor[30:38, 20:28]
+    gen = torch.Generator().manual_seed(0)
+    glossy = 0.2 + 0.35 * torch.rand(8, 8, generator=gen, dtype=torch.float64)
+    rgh = torch.where(fl, glossy, 0.9)[None, None].requires_grad_(True)
+    albedo, metal, fb = torch.full_like(img, 0.8), torch.ones_like(rgh), torch.full_like(img, 0.05)
+    k = K - torch.tensor([0.0, 0.0, 20.0, 30.0], dtype=torch.float64)
+    ssr = SSR(edge_fade=0.3, thickness=0.5)
+
+    def maps(r: torch.Tensor) -> SSRMaps:
+        return ssr(img, dep, nrm, r, metal, albedo, intrinsics=k, fallback=fb, return_maps=True)
+
+    m = maps(rgh)
+    fading = (m.confidence > 0) & (m.confidence < 1) & (rgh > 0.45)
+    assert int((m.confidence > 0).sum()) > 20 and bool(fading.any())
+    (g_refl,) = torch.autograd.grad(m.reflection.sum(), rgh)
+    assert int((g_refl != 0).sum()) > 5  # blurred reads: the level moves with roughness
+    assert torch.autograd.gradcheck(lambda r: maps(r).image, (rgh,), eps=1e-6, atol=1e-6)
+    assert torch.autograd.gradcheck(lambda r: maps(r).reflection, (rgh,), eps=1e-6, atol=1e-6)
+
+
 def test_float32_matches_float64() -> None:
     image, depth, normal, rough, _, _ = _floor_and_wall()
     r64, c64 = trace_reflections(image, depth, normal, rough, K, thickness=0.5)
@@ -266,6 +301,83 @@ def test_disabled_and_bad_args() -> None:
                      ({"refine_steps": -1}, "refine_steps"), ({"max_distance": 0}, "max_distance")):
         with pytest.raises(ValueError, match=name):
             SSR(**kw)
+
+
+@pytest.mark.parametrize("name", ["max_steps", "refine_steps"])
+@pytest.mark.parametrize("value", [16.0, 2.5, "8", True, None, -1, 10**7, 2**63, math.inf])
+def test_step_bounds_raise_naming_the_argument(name: str, value: object) -> None:
+    """Non-integers, <= 0 (< 0 for refine_steps) and huge counts: one clear error, from the
+    module and from trace_reflections alike (never a TypeError from range() or a hang)."""
+    with pytest.raises(ValueError, match=rf"{name}: expected an int in \["):
+        SSR(**{name: value})
+    img, d = torch.rand(1, 3, 4, 4), torch.ones(1, 1, 4, 4)
+    n, r = torch.zeros(1, 3, 4, 4), torch.zeros(1, 1, 4, 4)
+    with pytest.raises(ValueError, match=name):
+        trace_reflections(img, d, n, r, torch.tensor([4.0, 4.0, 1.5, 1.5]), **{name: value})
+
+
+def test_step_bounds_accept_ints_up_to_the_limits() -> None:
+    import numpy as np
+
+    ssr = SSR(max_steps=np.int64(MAX_STEPS), refine_steps=MAX_REFINE_STEPS)
+    assert ssr.max_steps == MAX_STEPS and type(ssr.max_steps) is int
+    assert SSR(max_steps=1, refine_steps=0).refine_steps == 0
+    assert march_step_bound(16, 16) == 71 and MAX_STEPS >= march_step_bound(2**17, 2**17)
+
+
+def _quad_gbuffer(res: int):
+    scene, view, proj = _quad_scene()
+    out = tr.Renderer(res, shading="unlit")(scene, view, proj, channels=[
+        "depth", "normal", "roughness", "metallic", "albedo"])
+    g = out.gbuffer
+    n_view = torch.einsum("ij,bjhw->bihw", view[0, :3, :3], g["normal"])
+    k = camera_intrinsics(proj, None, (1, res, res))
+    return out.image, g["depth"], n_view, g["roughness"], k
+
+
+def test_march_ends_when_every_ray_has_finished() -> None:
+    """Issue 21: rays leaving the frame stalled at s = 0.9999998 (their cell index clamped
+    to the frame, the exit behind them), so the march ran all ``max_steps``. Every ray
+    must now hit or miss within march_step_bound(H, W) steps, whatever the cap, and a
+    larger cap must not change the result."""
+    image, depth, normal, rough, k = _quad_gbuffer(16)
+    stats: dict = {}
+    refl, conf = trace_reflections(image, depth, normal, rough, k, max_steps=5000, stats=stats)
+    assert stats["rays"] > 50 and float(conf.max()) > 0  # some rays hit, some leave
+    assert 0 < stats["steps"] <= march_step_bound(16, 16)
+    refl_b, conf_b = trace_reflections(image, depth, normal, rough, k,
+                                       max_steps=march_step_bound(16, 16))
+    assert torch.equal(refl, refl_b) and torch.equal(conf, conf_b)
+
+
+@pytest.mark.parametrize("case", ["floor-wall", "random", "grazing"])
+def test_steps_used_stay_within_the_geometric_bound(case: str) -> None:
+    """float64 and float32 frames where rays leave through every border, hit, and skim:
+    the step count actually used never exceeds the bound, and the same cap-free result
+    comes out whether the cap is the bound or far above it."""
+    if case == "floor-wall":
+        image, depth, normal, rough, *_ = _floor_and_wall()
+        k = K
+    else:
+        gen = torch.Generator().manual_seed(3)
+        h, w = 20, 28
+        image = torch.rand(2, 3, h, w, generator=gen)
+        depth = torch.rand(2, 1, h, w, generator=gen) * 4 + 0.5
+        normal = torch.randn(2, 3, h, w, generator=gen)
+        if case == "grazing":
+            depth = torch.linspace(0.5, 1e4, h).view(1, 1, h, 1).expand(2, 1, h, w).contiguous()
+            normal = torch.tensor([0.0, 1.0, 1e-3]).view(1, 3, 1, 1).expand(2, 3, h, w)
+        rough = torch.rand(2, 1, h, w, generator=gen) * 0.5
+        k = torch.tensor([12.0, 12.0, (w - 1) / 2, (h - 1) / 2])
+    h, w = depth.shape[-2:]
+    stats: dict = {}
+    far = trace_reflections(image, depth, normal, rough, k, max_steps=10_000, stats=stats,
+                            thickness=0.5)
+    assert stats["rays"] > 0 and 0 < stats["steps"] <= march_step_bound(h, w)
+    at_bound = trace_reflections(image, depth, normal, rough, k, thickness=0.5,
+                                 max_steps=march_step_bound(h, w))
+    for a, b in zip(far, at_bound, strict=True):
+        assert torch.equal(a, b)
 
 
 # ------------------------------------------------------------------------------ renderer

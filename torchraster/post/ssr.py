@@ -19,8 +19,13 @@ the environment's (IBL / ambient) specular radiance of the pixel.
   more than ``thickness``), the ray skips the whole cell and goes one level up; else it first
   advances to the cell's nearest depth if it enters the cell in front of it, and goes one
   level down; at level 0 an overlap is a hit candidate. All rays step at once (packed
-  tensors; finished rays are dropped); ``max_steps`` bounds the steps. Rays skimming a
-  large plane (a floor seen at a low angle) go down to level 0 often: they cost the most.
+  tensors; finished rays are dropped) and the march ends when every ray has finished: hit,
+  or missed (its segment ended: it left the frame or the depth range, reached
+  ``max_distance``; a ray never goes behind the camera, its segment is clipped in front).
+  Every advance ends strictly further on (the nudge), so a ray takes at most
+  :func:`march_step_bound` ``(H, W)`` steps; ``max_steps`` only caps rays still going
+  then (misses). Rays skimming a large plane (a floor seen at a low angle) go down to level
+  0 often: they cost the most.
 * **Hit tests.** A candidate is rejected (the march goes on) when the pixel's surface point
   lies on or below the tangent plane of the ray's origin (a mirror ray leaves that plane
   and never comes back to it: no self-intersection on planes, no false hits on the
@@ -55,13 +60,15 @@ where it hits::
 confidence 1 the pixel's environment specular is exactly replaced by ``W * L_ssr``, at 0
 it is untouched, in between blended. The hit radiance is not multiplied by AO (the ray
 found the occluder itself). Differentiable with respect to the image (hit colours and the
-composite), albedo, metallic, roughness and ``fallback``; the march itself is discrete.
+composite), albedo, metallic, ``fallback`` and roughness (through ``W``, the cone-blur
+level of the hit colour and the confidence fade); the march itself is discrete.
 """
 
 from __future__ import annotations
 
 import inspect
 import math
+import operator
 from typing import NamedTuple
 
 import torch
@@ -86,6 +93,11 @@ FAR_DEPTH = 1e10
 #: the hit surface) lies outside that surface's silhouette: a miss. 0.5 puts the
 #: silhouette half-way between a covered and an uncovered pixel centre.
 MIN_COVERAGE = 0.5
+#: Largest accepted ``max_steps`` (the march ends when every ray has finished, after at most
+#: :func:`march_step_bound` steps: 2^20 covers frames up to 2^17 pixels on a side).
+MAX_STEPS = 1 << 20
+#: Largest accepted ``refine_steps`` (each halves the hit segment: 64 exhaust float64).
+MAX_REFINE_STEPS = 64
 #: Half-maximum tangent of GGX: D(theta_h) = D(0) / 2 at tan(theta_h) = alpha sqrt(sqrt 2 - 1).
 GGX_HALF_MAX_TAN = math.sqrt(math.sqrt(2.0) - 1.0)
 
@@ -107,6 +119,30 @@ class SSRMaps(NamedTuple):
     reflection: torch.Tensor
     confidence: torch.Tensor
     weight: torch.Tensor
+
+
+def march_step_bound(height: int, width: int) -> int:
+    """Most march steps any ray of an ``height x width`` frame can take: ``2 (H + W + 3) + 1``.
+
+    Each step either advances the ray to the exit of its cell (and goes a level up),
+    descends a level, or ends it (hit or miss). An advance ends on a pixel-grid line the
+    screen segment crosses further on (at most ``W + 1`` vertical and ``H + 1`` horizontal
+    ones) or at the segment's end, so a ray advances at most ``H + W + 3`` times; it
+    descends at most as often as it went up, and ends once. ``max_steps`` at or above this
+    never cuts a ray short.
+    """
+    return 2 * (int(height) + int(width) + 3) + 1
+
+
+def _check_steps(name: str, value: object, lo: int, hi: int) -> int:
+    """``value`` as an int in ``[lo, hi]``, else a ValueError naming ``name``."""
+    try:
+        n = None if isinstance(value, bool) else operator.index(value)  # int-like, not 2.0
+    except TypeError:
+        n = None
+    if n is None or not lo <= n <= hi:
+        raise ValueError(f"{name}: expected an int in [{lo}, {hi}], got {value!r}")
+    return n
 
 
 def specular_weight(
@@ -234,6 +270,7 @@ def trace_reflections(
     refine_steps: int = 4,
     max_distance: float = math.inf,
     blur: bool = True,
+    stats: dict | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """March the mirror rays of a frame (see the module docstring).
 
@@ -247,11 +284,18 @@ def trace_reflections(
             integers, row 0 at the top).
         max_steps, thickness, max_roughness, edge_fade, refine_steps, max_distance, blur:
             as in :class:`SSR`.
+        stats: optional dict, filled with ``"rays"`` (rays marched) and ``"steps"`` (march
+            iterations run: the march ends when every ray has hit or missed, so this is
+            at most :func:`march_step_bound` ``(H, W)`` whatever ``max_steps``).
 
     Returns:
         ``(reflection (B, 3, H, W), confidence (B, 1, H, W))``; both 0 where the ray missed
         or was not marched.
     """
+    max_steps = _check_steps("max_steps", max_steps, 1, MAX_STEPS)
+    refine_steps = _check_steps("refine_steps", refine_steps, 0, MAX_REFINE_STEPS)
+    if stats is not None:
+        stats.update(rays=0, steps=0)
     # the march is discrete (where a ray hits carries no gradient): its state is built from
     # detached geometry, so the in-place updates of the march never reach autograd
     depth, normals, intrinsics = depth.detach(), normals.detach(), intrinsics.detach()
@@ -341,9 +385,13 @@ def trace_reflections(
     st = st[alive]
     live = torch.ones(st.shape[0], dtype=torch.bool, device=dev)  # finished rays stay a
     hit_ray, hit_sa, hit_sb = [], [], []                           # while, marked dead
-    for _ in range(max_steps):
+    if stats is not None:
+        stats["rays"] = int(st.shape[0])
+    for step in range(max_steps):
         if ist.shape[0] == 0:
             break
+        if stats is not None:
+            stats["steps"] = step + 1
         lvl = ist[:, 1]
         s = st[:, 12]
         off, hl, wl, size_i = table[lvl].unbind(1)
@@ -374,7 +422,11 @@ def trace_reflections(
         advance = ~overlap | hit.logical_not() & at0
         ist[:, 1] = torch.where(advance, (lvl + 1).clamp_max(levels - 1),
                                 torch.where(at0, lvl, lvl - 1))
-        miss = advance & (s_exit >= 1.0) & live
+        # a ray ends past its last cell (s = 1: left the frame, the depth range or
+        # max_distance); inside the frame the nudge puts every cell exit strictly ahead,
+        # so an exit not ahead (cell index clamped to the frame, or s rounded to just
+        # under 1) means the ray has left the screen: without this it would stall there
+        miss = advance & ((s_exit >= 1.0) | (s_exit <= s)) & live
         if bool(hit.any()):
             hit_ray.append(ist[hit, 0])
             hit_sa.append(s[hit])
@@ -464,14 +516,18 @@ class SSR(nn.Module):
     """Screen-space reflections: lit image + G-buffer + camera -> image with reflections.
 
     Args:
-        max_steps: march steps per ray (hierarchical: one step skips a whole cell).
+        max_steps: cap on the march steps (hierarchical: one step skips a whole cell); an
+            int in ``[1, MAX_STEPS]``. The march stops earlier when every ray has finished,
+            at the latest after :func:`march_step_bound` ``(H, W)`` steps; rays still
+            going at the cap are misses.
         thickness: assumed thickness of the surfaces in the depth buffer (scene units): a
             ray passing behind a surface by more than this is not stopped by it.
         max_roughness: pixels at least this rough are not marched (the IBL stays); the
             confidence fades out over the last quarter of ``[0, max_roughness]``.
         edge_fade: width of the fade of hits near the screen border, as a fraction of
             ``min(H, W)`` (0: no fade).
-        refine_steps: bisections of the hit cell against the bilinear depth buffer.
+        refine_steps: bisections of the hit cell against the bilinear depth buffer, an
+            int in ``[0, MAX_REFINE_STEPS]``.
         max_distance: longest ray (scene units), ``inf`` = up to the frame's depth range.
         blur: roughness-dependent cone blur of the reflected colour (mip pyramid).
         enabled: ``False`` returns the image unchanged.
@@ -493,11 +549,8 @@ class SSR(nn.Module):
         enabled: bool = True,
     ):
         super().__init__()
-        for name, val in (("max_steps", max_steps), ("refine_steps", refine_steps)):
-            if isinstance(val, bool) or not isinstance(val, int) or val < (
-                    1 if name == "max_steps" else 0):
-                raise ValueError(f"{name}: expected an int >= {1 if name == 'max_steps' else 0}"
-                                 f", got {val!r}")
+        max_steps = _check_steps("max_steps", max_steps, 1, MAX_STEPS)
+        refine_steps = _check_steps("refine_steps", refine_steps, 0, MAX_REFINE_STEPS)
         for name, val, lo in (("thickness", thickness, 0.0), ("max_distance", max_distance,
                                                                0.0)):
             if not (isinstance(val, int | float) and val > lo) or math.isnan(val):
@@ -567,7 +620,7 @@ class SSR(nn.Module):
         with torch.no_grad():
             dep = depth.to(dt)
         refl, conf = trace_reflections(
-            img, dep, normals.to(dt), roughness.to(dt).detach(),
+            img, dep, normals.to(dt), roughness.to(dt),
             intrinsics.to(device=image.device, dtype=dt), max_steps=self.max_steps,
             thickness=self.thickness, max_roughness=self.max_roughness,
             edge_fade=self.edge_fade, refine_steps=self.refine_steps,
