@@ -31,7 +31,13 @@ from ._validate import check_frame_memory
 
 log = logging.getLogger("torchraster")
 
-__all__ = ["read_exr", "read_hdr", "sanitize_radiance", "write_hdr"]
+__all__ = ["MAX_RADIANCE", "read_exr", "read_hdr", "sanitize_radiance", "write_hdr"]
+
+#: Largest radiance a loaded HDR texel keeps (W/(sr m^2), ~ nits): about six times the
+#: sun's disc (1.6e9). RGBE holds up to 1.7e38 and EXR float up to 3.4e38, values whose
+#: products in the lighting passes (SH projection, prefiltering, intensity) overflow
+#: float32 to Inf and NaN; larger texels are clamped to this with a logged warning.
+MAX_RADIANCE: float = 1e10
 
 _RES_RE = re.compile(rb"^([-+])Y\s+(\d+)\s+([-+])X\s+(\d+)\s*$")
 _EXR_HINT = "reading .exr needs the optional OpenEXR package: pip install 'torchraster[exr]'"
@@ -68,7 +74,8 @@ def read_hdr(path: str | os.PathLike) -> torch.Tensor:
         img = img[::-1]
     if flip_x:
         img = img[:, ::-1]
-    return torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1)))
+    out = torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1)))
+    return sanitize_radiance(out, str(path))
 
 
 #: Peak bytes per pixel while decoding RLE data (int64 gather indices for 4 bytes, the
@@ -263,7 +270,8 @@ def read_exr(path: str | os.PathLike) -> torch.Tensor:
 def sanitize_radiance(image: torch.Tensor, source: str) -> torch.Tensor:
     """Make the texels of a loaded HDR image usable as light, with one logged warning naming
     ``source`` and the counts: NaN -> 0, +Inf -> the largest finite value of the image (a
-    saturated sun), negative and -Inf -> 0.
+    saturated sun), negative and -Inf -> 0, values above :data:`MAX_RADIANCE` (+Inf too)
+    -> :data:`MAX_RADIANCE`.
 
     Args:
         image: ``(3, H, W)`` float radiance.
@@ -275,13 +283,19 @@ def sanitize_radiance(image: torch.Tensor, source: str) -> torch.Tensor:
     finite = torch.isfinite(image)
     n_nan, n_inf = int(torch.isnan(image).sum()), int(torch.isposinf(image).sum())
     n_neg = int((image < 0).sum())
-    if n_nan == n_inf == n_neg == 0:
+    n_big = int((finite & (image > MAX_RADIANCE)).sum())
+    if n_nan == n_inf == n_neg == n_big == 0:
         return image
     top = image[finite].max() if bool(finite.any()) else image.new_zeros(())
-    out = torch.where(torch.isposinf(image), top.clamp_min(0), image)
-    out = torch.nan_to_num(out, nan=0.0, neginf=0.0).clamp_min(0)
-    log.warning("%s: %d NaN texel value(s) set to 0, %d +Inf set to %g, %d negative set to 0",
-                source, n_nan, n_inf, float(top), n_neg)
+    top = top.clamp(0, MAX_RADIANCE)
+    out = torch.where(torch.isposinf(image), top, image)
+    out = torch.nan_to_num(out, nan=0.0, neginf=0.0).clamp(0, MAX_RADIANCE)
+    if n_nan or n_inf or n_neg:
+        log.warning("%s: %d NaN texel value(s) set to 0, %d +Inf set to %g, %d negative set "
+                    "to 0", source, n_nan, n_inf, float(top), n_neg)
+    if n_big:
+        log.warning("%s: %d texel value(s) above MAX_RADIANCE = %g clamped to it", source,
+                    n_big, MAX_RADIANCE)
     return out
 
 

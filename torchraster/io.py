@@ -341,6 +341,38 @@ def missing_textures(path: Path) -> list[str]:
     return missing
 
 
+def unusable_textures(path: Path) -> list[str]:
+    """Texture files a ``.gltf`` refers to that exist but cannot be used, each as ``"<uri>
+    (<reason>)"``: the URI leaves the glTF's folder (trimesh's resolver refuses it) or
+    the file is not a readable image (PIL cannot identify or decode it). Both were dropped
+    silently by the loader. Missing files: :func:`missing_textures`."""
+    if path.suffix.lower() != ".gltf":
+        return []
+    from urllib.parse import unquote
+
+    from PIL import Image
+
+    header = _gltf_header(path) or {}
+    root = path.parent.resolve()
+    bad = []
+    for image in header.get("images", []):
+        uri = image.get("uri")
+        if not isinstance(uri, str) or not uri or uri.startswith("data:"):
+            continue
+        file = path.parent / unquote(uri)
+        if not file.is_file():
+            continue  # missing: reported by missing_textures
+        if not file.resolve().is_relative_to(root):
+            bad.append(f"{uri} (outside the glTF's folder {root})")
+            continue
+        try:
+            with Image.open(file) as im:
+                im.verify()
+        except Exception as e:  # PIL raises UnidentifiedImageError, OSError, SyntaxError...
+            bad.append(f"{uri} (not an image: {type(e).__name__})")
+    return bad
+
+
 def _read_text(path: Path) -> str:
     """A text file as str: UTF-8, else Latin-1 (every byte decodes; OBJ/MTL keywords are
     ASCII, so names with other encodings survive as text)."""
@@ -370,14 +402,17 @@ def load_scene(
         process: passed to trimesh; False keeps vertices exactly as in the file.
         max_texture_size: if given, textures are downscaled so the longer side is at most
             this (saves memory: DamagedHelmet's five 2048^2 maps).
-        allow_missing_textures: render materials whose texture files are missing without
-            those textures (logged as a warning) instead of raising.
+        allow_missing_textures: render materials whose texture files are missing (or, for
+            glTF, are not images or lie outside the file's folder) without those textures
+            (logged as a warning) instead of raising.
 
     Returns:
         A :class:`Scene`.
 
     Raises:
-        MeshFileError: naming the file (unreadable, no triangles, missing textures).
+        MeshFileError: naming the file (unreadable, no triangles, missing textures; glTF
+            textures that are not images or whose URI leaves the file's folder, naming the
+            URI).
         FileNotFoundError: the file does not exist.
     """
     import trimesh
@@ -395,6 +430,14 @@ def load_scene(
     if missing:
         log.warning("%s: texture file(s) not found, rendering without them: %s", p,
                     ", ".join(missing))
+    unusable = unusable_textures(p)
+    if unusable and not allow_missing_textures:
+        raise MeshFileError(f"{p}: texture file(s) cannot be used: {', '.join(unusable)} "
+                            "(pass allow_missing_textures=True / --allow-missing-textures to "
+                            "render without them)")
+    if unusable:
+        log.warning("%s: texture file(s) cannot be used, rendering without them: %s", p,
+                    ", ".join(unusable))
     try:
         if p.suffix.lower() == ".obj":  # decode ourselves: any encoding, no charset detector
             with open(p, "rb") as fh:

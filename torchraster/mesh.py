@@ -19,6 +19,7 @@ import torch
 
 from ._validate import check_tensor
 from .material import Material
+from .numerics import compute_dtype
 
 #: Squared length of an (unnormalised) normal below which it counts as zero. Cross products of
 #: edges of length L have squared length ~L**4, so this only catches truly degenerate
@@ -34,10 +35,19 @@ def _safe_normalize(v: torch.Tensor, eps: float = NORMAL_EPS) -> tuple[torch.Ten
     "Double where": the square root only sees safe values, so the gradient is finite (zero)
     for degenerate vectors instead of NaN.
     """
-    len2 = (v * v).sum(-1, keepdim=True)
-    ok = len2 > eps
+    # v / |v| is invariant to scaling v: divide by the largest |component| first (a
+    # constant for autograd, the result and gradient are exact), so the rsqrt sees a value
+    # in [1, 3] and its derivative cannot overflow for tiny vectors (edges of 1e-7 gave
+    # NaN gradients through rsqrt(1e-28)**3)
+    with torch.no_grad():
+        big = v.abs().amax(-1, keepdim=True)
+        vc = v.to(compute_dtype(v))  # half precision: squares of 1e-4 underflow
+        ok = (vc * vc).sum(-1, keepdim=True) > eps
+        big = torch.where(ok, big, torch.ones_like(big))
+    u = v / big
+    len2 = (u * u).sum(-1, keepdim=True)
     inv = torch.rsqrt(torch.where(ok, len2, torch.ones_like(len2)))
-    return torch.where(ok, v * inv, torch.zeros_like(v)), ok
+    return torch.where(ok, u * inv, torch.zeros_like(v)), ok
 
 
 def _batched(name: str, x: object, channels: int) -> tuple[torch.Tensor, bool]:

@@ -22,8 +22,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
-import torch.nn.functional as F
 
+from .numerics import compute_dtype, finish_low_precision, grid_sample
 from .texture import (
     address_pair,
     build_mip_pyramid,
@@ -59,7 +59,10 @@ class MipAtlas:
                                  f"texture, got {t.dtype} {tuple(t.shape)}")
         self.address = address_pair(address)
         self.channels = [t.shape[0] for t in textures]
+        # half-precision textures are stored in float32: the atlas coordinates need more
+        # than float16's 11 bits (numerics' policy), and grid_sample's half backward crashes
         tex = torch.cat(list(textures), 0)[None]
+        tex = tex.to(compute_dtype(tex))
         levels = [pad_texture(t, *self.address) for t in build_mip_pyramid(tex)]
         h0, w0 = levels[0].shape[-2:]
         col_w = max((t.shape[-1] for t in levels[1:]), default=0)
@@ -108,6 +111,9 @@ class MipAtlas:
         c = self.atlas.shape[1]
         if n == 0:
             return uv.new_zeros(c, 0)
+        out_dtype = uv.dtype
+        dt = compute_dtype(uv, self.atlas)  # float32 for half-precision lookups
+        uv, duv_dx, duv_dy = uv.to(dt), duv_dx.to(dt), duv_dy.to(dt)
         lod = compute_lod(duv_dx[None, :, None], duv_dy[None, :, None], self.size,
                           lod_bias)[0, 0, 0]  # (N,)
         top = self.num_levels - 1
@@ -128,6 +134,6 @@ class MipAtlas:
         ha, wa = self.atlas.shape[-2:]
         scale = grid.new_tensor([2.0 / (wa - 1), 2.0 / (ha - 1)])
         grid = (grid * scale - 1.0)[None, None]  # (1, 1, 2N, 2), align_corners=True
-        s = F.grid_sample(self.atlas.to(uv.dtype), grid, mode="bilinear",
-                          padding_mode="border", align_corners=True)[0, :, 0]  # (C, 2N)
-        return torch.lerp(s[:, :n], s[:, n:], frac[None])
+        s = grid_sample(self.atlas.to(dt), grid, mode="bilinear",
+                        padding_mode="border", align_corners=True)[0, :, 0]  # (C, 2N)
+        return finish_low_precision(torch.lerp(s[:, :n], s[:, n:], frac[None]), out_dtype)

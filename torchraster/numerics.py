@@ -7,6 +7,7 @@
 * :func:`compute_dtype` / :func:`finish_low_precision`: the half-precision policy: float16
   and bfloat16 inputs are evaluated in float32 and cast back, saturated to the finite range
   (Filament's ``saturateMediump``), so low-precision inputs never produce Inf.
+* :func:`grid_sample`: ``F.grid_sample`` in the compute dtype (never in half precision).
 * :func:`take_columns`: ``table.index_select(1, index)`` of a 2-D table by the fastest
   gather on CPU (torch's float32 dim-1 path for contiguous float32, else one 1-D gather per
   row).
@@ -17,6 +18,7 @@
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 
 #: Squared length below which a vector counts as zero for :func:`safe_normalize`
 #: (|x| < 1e-6): it then maps to the zero vector with a zero (finite) gradient.
@@ -112,6 +114,20 @@ def finish_low_precision(y: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
     return y.to(dtype)
 
 
+def grid_sample(input: torch.Tensor, grid: torch.Tensor, **kwargs) -> torch.Tensor:
+    """``F.grid_sample`` evaluated in :func:`compute_dtype` (float32 for float16 / bfloat16).
+
+    torch's CPU ``grid_sampler_2d_backward`` crashes the process (segfault, torch 2.x) on
+    contiguous float16 / bfloat16 inputs, and half-precision texel coordinates are off by up
+    to a texel (float16) or several (bfloat16) beyond 256 texels: every texture, table and
+    map lookup of the renderer goes through here. Same arguments as ``F.grid_sample``;
+    ``input`` ``(N, C, H_in, W_in)``, ``grid`` ``(N, H, W, 2)`` -> ``(N, C, H, W)`` in the
+    compute dtype (callers cast back with :func:`finish_low_precision`).
+    """
+    dt = compute_dtype(input, grid)
+    return F.grid_sample(input.to(dt), grid.to(dt), **kwargs)
+
+
 def smoothstep(t: torch.Tensor) -> torch.Tensor:
     """Hermite ``3t^2 - 2t^3`` of ``t`` clamped to [0, 1] (any shape; C1 at both ends)."""
     t = t.clamp(0.0, 1.0)
@@ -159,5 +175,5 @@ def take_columns(table: torch.Tensor, index: torch.Tensor,
 __all__ = [
     "DIELECTRIC_F0", "FLOOR_DIV_EXACT_LIMIT", "LOW_PRECISION", "NORMALIZE_EPS",
     "compute_dtype", "diffuse_color", "dot", "finish_low_precision", "floor_div_exact",
-    "safe_normalize", "specular_f0", "take_columns",
+    "grid_sample", "safe_normalize", "specular_f0", "take_columns",
 ]

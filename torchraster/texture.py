@@ -37,6 +37,7 @@ import torch
 import torch.nn.functional as F
 
 from torchraster._validate import check_tensor
+from torchraster.numerics import compute_dtype, finish_low_precision, grid_sample
 
 __all__ = [
     "FILTERS",
@@ -215,11 +216,11 @@ def sample_padded(
     grid = torch.stack((2.0 * (x + 1.0) / (w + 1) - 1.0, 2.0 * (y + 1.0) / (h + 1) - 1.0), -1)
     if tex.shape[0] == 1 and b > 1:
         flat = grid.reshape(1, b * grid.shape[1], grid.shape[2], 2)
-        out = F.grid_sample(padded, flat, mode=mode, padding_mode="border", align_corners=True)
+        out = grid_sample(padded, flat, mode=mode, padding_mode="border", align_corners=True)
         return out.reshape(tex.shape[1], b, *grid.shape[1:3]).transpose(0, 1)
     if b == 1 and tex.shape[0] > 1:  # one set of coordinates for a batch of textures
         grid = grid.expand(tex.shape[0], -1, -1, -1)
-    return F.grid_sample(padded, grid, mode=mode, padding_mode="border", align_corners=True)
+    return grid_sample(padded, grid, mode=mode, padding_mode="border", align_corners=True)
 
 
 def sample_levels(
@@ -326,25 +327,38 @@ def _sample(
     padded: Sequence[torch.Tensor] | None = None,
     max_anisotropy: int = 16,
 ) -> torch.Tensor:
-    levels = [t.to(uv.dtype) for t in levels]
-    padded = None if padded is None else [t.to(uv.dtype) for t in padded]
+    # half precision: texel coordinates and lookups in float32, the result cast back
+    # (numerics' policy; grid_sample's half backward crashes on CPU)
+    out_dtype = uv.dtype
+    dt = compute_dtype(uv)
+    levels = [t.to(dt) for t in levels]
+    padded = None if padded is None else [t.to(dt) for t in padded]
+    uv = uv.to(dt)
+    duv_dx = None if duv_dx is None else duv_dx.to(dt)
+    duv_dy = None if duv_dy is None else duv_dy.to(dt)
+    lod = None if lod is None else lod.to(dt)
+    if isinstance(lod_bias, torch.Tensor):
+        lod_bias = lod_bias.to(dt)
     u, v = uv[:, 0], uv[:, 1]
     if filter in ("nearest", "bilinear"):
         if padded is None:
-            return _sample_level(levels[0], u, v, filter, address)
-        return sample_padded(padded[0], u, v, filter, address)
-    if filter == "anisotropic":
+            out = _sample_level(levels[0], u, v, filter, address)
+        else:
+            out = sample_padded(padded[0], u, v, filter, address)
+    elif filter == "anisotropic":
         from .anisotropic import sample_anisotropic  # same layer; it imports this module
 
         assert duv_dx is not None and duv_dy is not None
-        return sample_anisotropic(levels, uv, duv_dx, duv_dy, address, max_anisotropy,
-                                  lod_bias, padded)
-    if lod is None:
-        assert duv_dx is not None and duv_dy is not None
-        lod = compute_lod(duv_dx, duv_dy, tuple(levels[0].shape[-2:]), lod_bias)
+        out = sample_anisotropic(levels, uv, duv_dx, duv_dy, address, max_anisotropy,
+                                 lod_bias, padded)
     else:
-        lod = lod + lod_bias
-    return sample_levels(levels, u, v, lod, address, padded)
+        if lod is None:
+            assert duv_dx is not None and duv_dy is not None
+            lod = compute_lod(duv_dx, duv_dy, tuple(levels[0].shape[-2:]), lod_bias)
+        else:
+            lod = lod + lod_bias
+        out = sample_levels(levels, u, v, lod, address, padded)
+    return finish_low_precision(out, out_dtype)
 
 
 def sample_texture(
@@ -530,13 +544,14 @@ def sample_latlong(
     if filter == "anisotropic":
         raise ValueError("filter: expected 'nearest', 'bilinear' or 'trilinear' in "
                          "sample_latlong, got 'anisotropic' (it needs UV derivatives)")
-    uv = latlong_uv(direction)
+    uv = latlong_uv(direction.to(compute_dtype(direction)))  # half: float32 angles
     if filter == "trilinear" and lod is None:
         raise ValueError("lod: required for filter='trilinear' in sample_latlong")
     _check_uv_inputs(tuple(levels[0].shape), uv, filter, None, None, lod)
     if filter == "trilinear" and len(levels) == 1:
         levels = build_mip_pyramid(levels[0])
-    return _sample(levels, uv, filter, ("wrap", "clamp"), None, None, lod, 0.0)
+    out = _sample(levels, uv, filter, ("wrap", "clamp"), None, None, lod, 0.0)
+    return finish_low_precision(out, direction.dtype)
 
 
 def cube_directions(
@@ -627,17 +642,19 @@ def sample_cube(
         raise ValueError(f"cube: faces must be square, got {tuple(cube.shape[-2:])}")
     if filter not in ("nearest", "bilinear"):
         raise ValueError(f"filter: expected 'nearest' or 'bilinear', got {filter!r}")
-    face, st = cube_uv(direction)
+    dt = compute_dtype(direction)  # half precision: looked up in float32, cast back
+    face, st = cube_uv(direction.to(dt))
     b = direction.shape[0]
     if cube.shape[0] not in (1, b):
         raise ValueError(f"cube: batch size {cube.shape[0]} does not match direction's {b}")
     s = cube.shape[-1]
     n = s + 2
-    atlas = _cube_atlas(_expand_batch(cube.to(direction.dtype), b))
+    atlas = _cube_atlas(_expand_batch(cube.to(dt), b))
     x = st[:, 0] * s + 0.5  # texel index inside the apron-padded face (centres at ints)
     y = st[:, 1] * s + 0.5 + face.to(st.dtype) * n
     grid = torch.stack((2.0 * x / (n - 1) - 1.0, 2.0 * y / (6 * n - 1) - 1.0), -1)
-    return F.grid_sample(atlas, grid, mode=filter, padding_mode="border", align_corners=True)
+    out = grid_sample(atlas, grid, mode=filter, padding_mode="border", align_corners=True)
+    return finish_low_precision(out, direction.dtype)
 
 
 def latlong_to_cube(env: torch.Tensor, size: int, *, supersample: int = 2) -> torch.Tensor:

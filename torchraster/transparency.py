@@ -79,10 +79,24 @@ def select_layers(layers: list[GBuffer], index: torch.Tensor) -> GBuffer:
     return GBuffer(**out)
 
 
-def composite_over(colors: list[torch.Tensor], opacities: list[torch.Tensor]
+def composite_over(colors: list[torch.Tensor], opacities: list[torch.Tensor], *,
+                   like: tuple[torch.Tensor, torch.Tensor] | None = None
                    ) -> tuple[torch.Tensor, torch.Tensor]:
     """Front-to-back "over": ``(sum_k T_k a_k c_k, T_K)``, each ``(B, C, H, W)`` /
-    ``(B, 1, H, W)``; ``colors[k]`` is the shaded radiance of layer k."""
+    ``(B, 1, H, W)``; ``colors[k]`` is the shaded radiance of layer k.
+
+    With no layer (nothing opaque in view: an empty frame, or alpha 0 everywhere) the
+    result is no radiance and full transmittance, shaped like ``like`` = ``(a colour
+    (B, C, H, W), an opacity (B, 1, H, W))`` (e.g. the first layer's, unshaded).
+    """
+    if len(colors) != len(opacities):
+        raise ValueError(f"colors, opacities: expected one colour per opacity, got "
+                         f"{len(colors)} and {len(opacities)}")
+    if not colors:
+        if like is None:
+            raise ValueError("colors: empty (no layer to composite); pass like=(colour, "
+                             "opacity) tensors to get the empty result's shape")
+        return torch.zeros_like(like[0]), torch.ones_like(like[1])
     total = torch.zeros_like(colors[0])
     transmittance = torch.ones_like(opacities[0])
     for color, a in zip(colors, opacities, strict=True):

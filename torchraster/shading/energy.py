@@ -31,7 +31,8 @@ section energy).
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
+
+from torchraster.numerics import compute_dtype, finish_low_precision, grid_sample
 
 __all__ = ["ENERGY_LUT_SIZE", "ENERGY_LUT_SAMPLES", "MIN_DFG_ALBEDO", "dfg_terms",
            "energy_terms"]
@@ -66,8 +67,9 @@ def dfg_terms(
     shape = nv.shape
     grid = torch.stack((nv.reshape(-1).clamp(0.0, 1.0) * 2.0 - 1.0,
                         rough.reshape(-1).clamp(0.0, 1.0) * 2.0 - 1.0), -1)
-    ab = F.grid_sample(lut.to(nv.dtype)[None], grid.view(1, 1, -1, 2), mode="bilinear",
-                       padding_mode="border", align_corners=True)  # (1, 2, 1, N)
+    ab = grid_sample(lut.to(compute_dtype(nv))[None], grid.view(1, 1, -1, 2), mode="bilinear",
+                     padding_mode="border", align_corners=True)  # (1, 2, 1, N), float32 for half
+    ab = finish_low_precision(ab, nv.dtype)
     return ab[0, 0, 0].view(shape), ab[0, 1, 0].view(shape)
 
 

@@ -47,7 +47,14 @@ import torch.nn.functional as F
 from torch.utils.checkpoint import checkpoint
 
 from torchraster._validate import check_radiance, check_tensor
-from torchraster.numerics import diffuse_color, dot, safe_normalize
+from torchraster.numerics import (
+    compute_dtype,
+    diffuse_color,
+    dot,
+    finish_low_precision,
+    grid_sample,
+    safe_normalize,
+)
 from torchraster.shading.brdf import MIN_ROUGHNESS, d_ggx, v_smith_ggx_correlated
 from torchraster.shading.energy import MIN_DFG_ALBEDO, energy_terms
 from torchraster.shading.lights import (  # one SH basis for ambient lights and IBL
@@ -541,8 +548,10 @@ def lookup_dfg(
     x = n_dot_v.clamp(0.0, 1.0) * 2.0 - 1.0
     y = roughness.clamp(0.0, 1.0) * 2.0 - 1.0
     grid = torch.stack((x[:, 0], y[:, 0]), -1)
-    tab = lut.to(n_dot_v.dtype)[None].expand(b, -1, -1, -1)
-    ab = F.grid_sample(tab, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    dt = compute_dtype(n_dot_v)  # half precision: looked up in float32, cast back
+    tab = lut.to(dt)[None].expand(b, -1, -1, -1)
+    ab = grid_sample(tab, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    ab = finish_low_precision(ab, n_dot_v.dtype)
     return ab[:, :1], ab[:, 1:]
 
 

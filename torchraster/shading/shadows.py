@@ -55,6 +55,7 @@ gradient.
 
 from __future__ import annotations
 
+import hashlib
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -62,7 +63,7 @@ from dataclasses import dataclass, field
 import torch
 
 from torchraster._validate import check_tensor
-from torchraster.numerics import safe_normalize
+from torchraster.numerics import compute_dtype, safe_normalize
 from torchraster.raster import rasterize, rasterize_depth
 
 FILTERS = ("hard", "pcf", "pcss", "vsm")
@@ -392,7 +393,9 @@ def directional_views(direction: torch.Tensor, settings: ShadowSettings, bounds:
     """
     b, n_lights, _ = direction.shape
     c = settings.cascades
-    dtype = direction.dtype
+    # half precision: the views are built (and the maps kept) in float32
+    dtype = compute_dtype(direction)
+    direction, bounds, view, proj = (t.to(dtype) for t in (direction, bounds, view, proj))
     fwd = safe_normalize(direction, dim=-1)
     rot = _basis_from_forward(fwd)  # (B, Ls, 3, 3), differentiable in direction
     with torch.no_grad():
@@ -471,7 +474,10 @@ def local_views(kind: str, position: torch.Tensor, direction: torch.Tensor | Non
         :class:`ShadowMaps` without depth.
     """
     b, n_lights, _ = position.shape
-    dtype, device = position.dtype, position.device
+    dtype, device = compute_dtype(position), position.device  # half precision: float32
+    position, bounds = position.to(dtype), bounds.to(dtype)
+    direction = None if direction is None else direction.to(dtype)
+    outer_cone = None if outer_cone is None else outer_cone.to(dtype)
     size = settings.map_size
     if settings.cascades != 1 or settings.max_distance is not None:
         raise ValueError(f"ShadowSettings.cascades / max_distance: cascades are for directional "
@@ -517,33 +523,53 @@ def local_views(kind: str, position: torch.Tensor, direction: torch.Tensor | Non
 # ------------------------------------------------------------------------------- render
 
 
+def _digest(t: torch.Tensor) -> tuple:
+    """A key identifying a tensor by value: a 128-bit BLAKE2 digest of its bytes, with its
+    shape and dtype (as ``ibl.content_key``; equal keys hold the same numbers)."""
+    data = t.detach().contiguous().cpu()
+    digest = hashlib.blake2b(data.view(torch.uint8).numpy().tobytes(), digest_size=16)
+    return digest.hexdigest(), tuple(t.shape), str(t.dtype)
+
+
 class ShadowMapCache:
     """Rendered depth maps kept across calls, keyed by content (static casters and lights:
     a moving camera re-renders no map).
 
     A view's key is its map size, its 4x4 world -> clip matrix and the casters it draws
-    (its batch item's positions, the faces, its face range), compared by value, so any
-    change (also an in-place edit) renders anew. Views of one call with equal keys (e.g.
+    (a 128-bit digest of its batch item's positions and of the faces, its face range), so
+    any change (also an in-place edit) renders anew. Views of one call with equal keys (e.g.
     a batch of cameras sharing a sun whose map is fitted to the casters) are rendered once.
     Only the non-differentiable depth pass is cached (not VSM maps with autograd on).
+    The keys hold digests, not copies of the casters, so what the cache holds is bounded
+    by ``max_bytes`` (maps and matrices) however the geometry changes from call to call.
 
     Args:
-        max_bytes: bound on the cached maps (least recently used dropped first).
+        max_bytes: bound on the bytes held (maps and key matrices; least recently used
+            dropped first).
     """
 
     def __init__(self, max_bytes: int = 64 * 2**20) -> None:
         self.max_bytes = int(max_bytes)
-        self._entries: list[tuple] = []  # (size, matrix, positions, faces, range, depth)
+        self._entries: list[tuple] = []  # (size, matrix, positions digest, faces digest,
+        #                                    range, depth)
         self.renders = 0  # views rendered (not found in the cache), for tests and benches
 
     def __len__(self) -> int:
         return len(self._entries)
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the tensors the cache holds (maps and key matrices)."""
+        return sum(self._entry_bytes(e) for e in self._entries)
+
+    @staticmethod
+    def _entry_bytes(e: tuple) -> int:
+        return sum(t.numel() * t.element_size() for t in e if isinstance(t, torch.Tensor))
+
     @staticmethod
     def _same(a: tuple, b: tuple) -> bool:
-        return (a[0] == b[0] and a[4] == b[4] and torch.equal(a[1], b[1])
-                and (a[2] is b[2] or torch.equal(a[2], b[2]))
-                and (a[3] is b[3] or torch.equal(a[3], b[3])))
+        return (a[0] == b[0] and a[2] == b[2] and a[3] == b[3] and a[4] == b[4]
+                and torch.equal(a[1], b[1]))
 
     def render(self, pos: torch.Tensor, faces: torch.Tensor, face_ranges: torch.Tensor | None,
                items: torch.Tensor, mats: torch.Tensor, size: int, per_call: int
@@ -552,8 +578,8 @@ class ShadowMapCache:
         ``items`` ``(N,)`` (positions ``(B or 1, V, 3)``), as :func:`rasterize_depth`."""
         pos, mats = pos.detach(), mats.detach()
         shared = pos.shape[0] == 1
-        pos_keys = [pos[0].clone()] if shared else [p.clone() for p in pos]
-        faces_key = faces.clone()
+        pos_keys = [_digest(pos[0])] if shared else [_digest(p) for p in pos]
+        faces_key = _digest(faces)
         keys, found = [], []
         for j, it in enumerate(items.tolist()):
             rng = None if face_ranges is None else tuple(face_ranges[it].tolist())
@@ -583,10 +609,9 @@ class ShadowMapCache:
         self._entries = ([e for k, e in enumerate(self._entries) if k not in hits]
                          + [self._entries[k] for k in hits]  # most recently used last
                          + [keys[j] + (fresh[j],) for j in todo])
-        nbytes = sum(e[5].numel() * e[5].element_size() for e in self._entries)
-        while nbytes > self.max_bytes and len(self._entries) > 1:
-            e = self._entries.pop(0)
-            nbytes -= e[5].numel() * e[5].element_size()
+        nbytes = self.nbytes
+        while nbytes > self.max_bytes and self._entries:
+            nbytes -= self._entry_bytes(self._entries.pop(0))
         return torch.stack(out) if out else pos.new_empty(0, size, size)
 
 
@@ -608,6 +633,7 @@ def render_shadow_maps(groups: Sequence[ShadowMaps], positions: torch.Tensor,
         cache: a :class:`ShadowMapCache`: maps of views seen before (same casters, same
             matrix) are reused, and equal views of this call rendered once.
     """
+    positions = positions.to(compute_dtype(positions))  # half precision: maps in float32
     by_size: dict[tuple[int, bool], list[ShadowMaps]] = {}
     for g in groups:
         grad = g.settings.filter == "vsm" and torch.is_grad_enabled() and (
@@ -749,7 +775,13 @@ def _project(g: ShadowMaps, p: torch.Tensor, n: torch.Tensor, item: torch.Tensor
     else:
         to_light = safe_normalize(g.light_position.index_select(0, item) - p[:, None], dim=-1)
     cos = (n[:, None] * to_light).sum(-1).clamp(1e-3, 1.0)
-    tan = (torch.sqrt((1 - cos * cos).clamp_min(0)) / cos).clamp_max(MAX_SLOPE)
+    # tan = sin / cos; "double where" on sin^2: sqrt's derivative is infinite at 0 (a light
+    # straight along the normal), which gave NaN gradients w.r.t. the light direction
+    sin2 = 1 - cos * cos
+    flat = sin2 > 1e-12
+    sin = torch.where(flat, torch.sqrt(torch.where(flat, sin2, torch.ones_like(sin2))),
+                      torch.zeros_like(sin2))
+    tan = (sin / cos).clamp_max(MAX_SLOPE)
     q = (view[..., :3, :3] @ p[:, None, :, None])[..., 0] + view[..., :3, 3]
     depth = -q[..., 2]
     world_texel = texel * depth.abs() if g.perspective else texel
@@ -930,10 +962,12 @@ def shadow_visibility(g: ShadowMaps, position: torch.Tensor, normal: torch.Tenso
 
     Returns:
         ``(B, Ls, 1, H, W)`` visibility in [0, 1] (1 where not receiving), already scaled
-        by ``settings.intensity``.
+        by ``settings.intensity``; float32 for float16 / bfloat16 inputs.
     """
     b, _, h, w = position.shape
     n_l = g.view.shape[1]
+    dt = compute_dtype(position, normal, g.view)  # half precision: looked up in float32
+    position, normal = position.to(dt), normal.to(dt)
     out = position.new_ones(b * h * w, n_l)
     pix = receive.reshape(-1).nonzero().flatten()
     if pix.numel() == 0:
