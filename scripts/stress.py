@@ -31,6 +31,24 @@ zero-area triangle), rendered forward and backward through ``tr.Renderer``:
 - grazing: all of the above at random, cameras edge-on to the plane (elevation 0 or 1e-4
   degrees) and from below it, supersampling, SSAO, every texture filter, every shading
   model, float64.
+- labels: the label channels (instance, semantic, object_coords, distance, amodal, face_id)
+  of the same stage as three objects, in float32, float64, float16 or bfloat16, supersampled
+  1x to 3x, batch 1-2 (with face_ranges dropping an object), sometimes a MASK cut-out; the
+  labels' invariants are checked (ids in range, semantic = category of instance, visible
+  inside amodal, NOCS in [0, 1], distance >= depth, all 0 where empty) and counted as
+  "label errors".
+- motion: the flow / motion channels (flow_forward, flow_backward, their validity, motion)
+  of the stage with the sphere moved by 0 to 1e6 m (1e3 in half precision) and the other
+  frames' cameras orbiting (0.5 to 6 m from the target), placed on a vertex, inside the
+  sphere or pointing away, in float32, float64, float16 or bfloat16, supersampled 1x to
+  3x, batch 1-2, culling and a MASK cut-out at random; checks validity in {0, 1} and only on
+  covered pixels, flow and motion 0 where empty, and
+  motion = -flow_backward * (2 / W, -2 / H) (counted as "motion errors"). NaN/Inf gradients
+  of float16 renders are counted apart, not as problems: near the other camera's plane the
+  flow's gradient exceeds float16's range in rasterize's float16 backward (a known limit).
+- half: the stage in float16 / bfloat16 with float textures (up to 300 texels), a sun
+  (sometimes straight down) and a spot light casting shadows with every filter, every
+  texture filter, antialiasing on or off.
 Any kind may also draw screen-space reflections, fog with light shafts (densities 0 to 50,
 height falloffs 0 to 20), a dissolve (threshold 0, 0.3 or 1) and the multiscatter switch.
 For every render: NaN/Inf in the image, alpha and every float G-buffer channel, and in the
@@ -64,6 +82,7 @@ from benchmd import markdown_table, update_section
 
 import torchraster as tr
 from torchraster.mesh import vertex_normals, vertex_tangents
+from torchraster.motion import OtherFrame
 from torchraster.testing.reference_raster import (
     look_at_matrix,
     perspective_matrix,
@@ -346,7 +365,7 @@ def picture(path: Path) -> None:
 
 
 # ------------------------------------------------------------------------------- renderer
-R_KINDS = ("material", "light", "environment", "grazing")
+R_KINDS = ("material", "light", "environment", "grazing", "labels", "motion", "half")
 #: Hostile magnitudes: zero, a float32 denormal, tiny, one, huge.
 HOSTILE = (0.0, 1e-40, 1e-6, 1.0, 1e6)
 R_COLUMNS = [
@@ -356,10 +375,13 @@ R_COLUMNS = [
     ("nonfinite_grad_material", "NaN/Inf grad material"),
     ("nonfinite_grad_lights", "NaN/Inf grad lights"),
     ("nonfinite_grad_environment", "NaN/Inf grad environment"),
-    ("grad_values", "gradient values checked"),
+    ("grad_values", "gradient values checked"), ("label_errors", "label errors"),
+    ("motion_errors", "motion errors"),
+    ("motion_f16_overflow", "float16 flow grad overflow (known, not counted)"),
     ("rejected", "rejected (ValueError/TypeError)"), ("exceptions", "exceptions"),
 ]
-R_PROBLEMS = {key for key, _ in R_COLUMNS} - {"scenes", "covered", "grad_values", "rejected"}
+R_PROBLEMS = {key for key, _ in R_COLUMNS} - {"scenes", "covered", "grad_values", "rejected",
+                                               "motion_f16_overflow"}
 
 
 def _pick(gen: torch.Generator, options: tuple | list):
@@ -400,6 +422,18 @@ def _stage(gen: torch.Generator, dtype: torch.dtype):
                                torch.ones(len(sf), dtype=torch.long),
                                torch.zeros(len(degenerate), dtype=torch.long)])
     return positions, faces, uvs, face_material
+
+
+def _identity(positions: torch.Tensor, faces: torch.Tensor, face_material: torch.Tensor):
+    """Object identity of the stage: the plane is object 1, the sphere 2, the zero-area
+    triangle (if any) 3; categories 1, 2, 1; NOCS of each object's own vertices."""
+    n_plane, n_sphere = 2 * 4 * 4, int((face_material == 1).sum())  # _stage's layout
+    face_object = torch.cat([torch.full((n_plane,), 1), torch.full((n_sphere,), 2),
+                             torch.full((faces.shape[0] - n_plane - n_sphere,), 3)])
+    split = 25  # the plane's (n + 1)**2 vertices come first
+    coords = torch.cat([tr.scene.nocs_coords(positions[:split].detach()),
+                        tr.scene.nocs_coords(positions[split:].detach())])
+    return face_object, torch.tensor([0, 1, 2, 1]), coords
 
 
 def _material(gen: torch.Generator, hostile: bool, params: list[torch.Tensor]) -> tr.Material:
@@ -522,6 +556,8 @@ def _nonfinite(t: torch.Tensor | None) -> int:
 
 def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
     """One hostile render forward and backward (see the module docstring for the kinds)."""
+    if kind == "half":
+        return scene_half(gen, c)
     wild = kind == "grazing"
     dtype = torch.float64 if wild and _chance(gen, 0.25) else torch.float32
     positions, faces, uvs, face_material = _stage(gen, dtype)
@@ -537,8 +573,15 @@ def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
     tangents = None
     if any(m.normal_texture is not None for m in materials):
         tangents = vertex_tangents(positions, uvs, vertex_normals(positions, faces), faces)
+    face_object, category, coords = _identity(positions, faces, face_material)
     scene = tr.RenderScene(positions, faces, uvs=uvs, tangents=tangents,
-                           face_material=face_material, materials=materials)
+                           face_material=face_material, materials=materials,
+                           face_object=face_object, object_category=category,
+                           object_coords=coords)
+    if kind == "labels":
+        return scene_labels(gen, scene, c)
+    if kind == "motion":
+        return scene_motion(gen, scene, c)
     b = _randint(gen, 1, 2)
     if wild:
         elevation = torch.tensor([_pick(gen, (0.0, 1e-4, -20.0, 30.0)) for _ in range(b)])
@@ -581,6 +624,192 @@ def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
     for name, ts in groups.items():
         c[f"nonfinite_grad_{name}"] += sum(_nonfinite(g) for g in grads[k:k + len(ts)])
         k += len(ts)
+
+def scene_half(gen: torch.Generator, c: Counter) -> None:
+    """The stage in float16 or bfloat16 (positions, UVs, float textures up to 300 texels,
+    lights, cameras), a sun and a spot light casting shadows (random filter), random
+    texture filter and antialiasing; forward and backward, NaN/Inf counted."""
+    dtype = _pick(gen, (torch.float16, torch.bfloat16))
+    positions, faces, uvs, face_material = _stage(gen, dtype)
+    positions = positions.requires_grad_(True)
+    size = _pick(gen, (4, 64, 300))
+    textures = [torch.rand(3, size, size, generator=gen).to(dtype).requires_grad_(True)
+                for _ in range(2)]
+    materials = [tr.Material(base_color_texture=t, roughness_factor=_rand(gen, 0.0, 1.0),
+                             metallic_factor=_pick(gen, (0.0, 1.0))) for t in textures]
+    sun = torch.tensor([[[_rand(gen, -0.5, 0.5), -1.0, _rand(gen, -0.5, 0.5)]]])
+    if _chance(gen, 0.3):
+        sun = torch.tensor([[[0.0, -1.0, 0.0]]])  # straight down onto the floor
+    sun = sun.to(dtype).requires_grad_(True)
+    spot_pos = torch.tensor([[[_rand(gen, -1.0, 1.0), 2.5, _rand(gen, -1.0, 1.0)]]], dtype=dtype)
+    lights = tr.Lights(
+        ambient=tr.sh_from_color(torch.full((1, 3), 0.1, dtype=dtype)),
+        directional=tr.DirectionalLights(sun, torch.ones(1, 1, 3, dtype=dtype),
+                                         torch.full((1, 1), 3.0, dtype=dtype),
+                                         cast_shadows=torch.tensor([[True]])),
+        spot=tr.SpotLights(spot_pos, torch.tensor([[[0.0, -1.0, 0.0]]], dtype=dtype),
+                           torch.ones(1, 1, 3, dtype=dtype), torch.full((1, 1), 20.0,
+                                                                        dtype=dtype),
+                           cast_shadows=torch.tensor([[_chance(gen, 0.5)]])))
+    scene = tr.RenderScene(positions, faces, uvs=uvs.to(dtype), face_material=face_material,
+                           materials=materials)
+    view = tr.camera.orbit(torch.tensor([_rand(gen, 0.0, 360.0)]),
+                           torch.tensor([_rand(gen, 10.0, 60.0)]),
+                           torch.tensor([_rand(gen, 2.0, 6.0)]),
+                           torch.tensor([0.0, 0.3, 0.0])).to(dtype)
+    res = (_randint(gen, 8, 40), _randint(gen, 8, 40))
+    proj = tr.camera.perspective(_rand(gen, 20.0, 90.0), res[1] / res[0], 0.01).to(dtype)
+    settings = tr.shading.shadows.ShadowSettings(
+        map_size=_pick(gen, (32, 128)), filter=_pick(gen, tr.shading.shadows.FILTERS))
+    renderer = tr.Renderer(res, antialias=_chance(gen, 0.5), shadow_settings=settings,
+                           texture_filter=_pick(gen, ("trilinear", "bilinear", "nearest",
+                                                      "anisotropic")))
+    out = renderer(scene, view, proj, lights)
+    c["covered"] += int((out.alpha > 0).sum())
+    c["nonfinite_image"] += _nonfinite(out.image)
+    c["nonfinite_alpha"] += _nonfinite(out.alpha)
+    loss = (out.image.float() * torch.randn(out.image.shape, generator=gen)).sum()
+    leaves = [positions, *textures, sun]
+    grads = torch.autograd.grad(loss, leaves, allow_unused=True)
+    c["grad_values"] += sum(g.numel() for g in grads if g is not None)
+    c["nonfinite_grad_positions"] += _nonfinite(grads[0])
+    c["nonfinite_grad_material"] += sum(_nonfinite(g) for g in grads[1:3])
+    c["nonfinite_grad_lights"] += _nonfinite(grads[3])
+
+
+LABELS = ["instance", "semantic", "object_coords", "distance", "amodal", "face_id", "depth"]
+
+
+def scene_labels(gen: torch.Generator, scene: tr.RenderScene, c: Counter) -> None:
+    """The label channels of ``scene`` (the stage as three objects) forward and backward in
+    a random dtype (half precision included), supersampling and batch; counts NaN/Inf and
+    violated label invariants."""
+    dtype = _pick(gen, (torch.float32, torch.float64, torch.float16, torch.bfloat16))
+    positions = scene.positions.detach().to(dtype).requires_grad_(True)
+    scene.positions = positions
+    scene.object_coords = scene.object_coords.to(dtype)
+    scene.uvs = scene.tangents = None
+    if _chance(gen, 0.3):  # the sphere is a cut-out: labels of what is behind it
+        scene.materials = [None, tr.Material(base_color_factor=torch.tensor(
+            [1.0, 1.0, 1.0, _pick(gen, (0.0, 0.3, 1.0))]), alpha_mode="MASK")]
+    else:
+        scene.materials = [None, None]
+    b = _randint(gen, 1, 2)
+    if b == 2 and _chance(gen, 0.5):  # item 1 draws the sphere (and triangle) only
+        n_plane = int((scene.face_object == 1).sum())
+        scene.face_ranges = torch.tensor([[0, scene.faces.shape[0]],
+                                          [n_plane, scene.faces.shape[0]]])
+    view = tr.camera.orbit(torch.tensor([_rand(gen, 0.0, 360.0) for _ in range(b)]),
+                           torch.tensor([_rand(gen, -20.0, 70.0) for _ in range(b)]),
+                           torch.tensor([_rand(gen, 1.5, 6.0) for _ in range(b)]),
+                           torch.tensor([0.0, 0.3, 0.0])).to(dtype)
+    res = (_randint(gen, 4, 32), _randint(gen, 4, 32))
+    proj = tr.camera.perspective(_rand(gen, 20.0, 90.0), res[1] / res[0], 0.01).to(dtype)
+    renderer = tr.Renderer(res, shading="unlit", supersample=_randint(gen, 1, 3),
+                           cull_backfaces=_chance(gen, 0.3))
+    out = renderer(scene, view, proj, channels=LABELS)
+    gb = out.gbuffer
+    c["covered"] += int((gb["instance"] > 0).sum())
+    c["nonfinite_image"] += _nonfinite(out.image)
+    c["nonfinite_gbuffer"] += sum(_nonfinite(v) for v in gb.values())
+    inst, empty = gb["instance"], gb["face_id"] < 0
+    amodal = gb["amodal"]
+    tol = 1e-2 if dtype in (torch.float16, torch.bfloat16) else 1e-5
+    errors = int((inst < 0).sum() + (inst > 3).sum() + (empty != (inst == 0)).sum())
+    errors += int((gb["semantic"] != scene.object_category[inst]).sum())
+    visible = torch.nn.functional.one_hot(inst[:, 0], 4)[..., 1:].permute(0, 3, 1, 2).bool()
+    errors += int((visible & ~amodal).sum())
+    nocs = gb["object_coords"].float()
+    errors += int(((nocs < -tol) | (nocs > 1 + tol)).any(1, keepdim=True)[~empty].sum())
+    errors += int(((nocs != 0).any(1, keepdim=True) & empty).sum())
+    dist, depth = gb["distance"].float(), gb["depth"].float()
+    errors += int(((dist != 0) & empty).sum())
+    if renderer.supersample == 1:  # (depth is box-filtered when supersampled)
+        errors += int((dist < depth * (1 - tol) - tol)[~empty].sum())
+    c["label_errors"] += errors
+    loss = sum((v.float() * torch.randn(v.shape, generator=gen)).sum()
+               for k, v in gb.items() if v.is_floating_point() and v.requires_grad)
+    grad = torch.autograd.grad(loss, positions, allow_unused=True)[0] if isinstance(
+        loss, torch.Tensor) and loss.requires_grad else None
+    c["grad_values"] += 0 if grad is None else grad.numel()
+    c["nonfinite_grad_positions"] += _nonfinite(grad)
+
+
+MOTION = ["flow_forward", "flow_forward_valid", "flow_backward", "flow_backward_valid",
+          "motion", "mask"]
+
+
+def _other_frame(gen: torch.Generator, positions: torch.Tensor, split: int, b: int,
+                 proj: torch.Tensor) -> OtherFrame:
+    """The stage at another frame: the sphere (vertices from ``split``) moved by a hostile
+    offset, the camera orbiting, on a vertex, inside the sphere or looking away."""
+    dtype = positions.dtype
+    low = dtype in (torch.float16, torch.bfloat16)
+    offset = (torch.randn(3, generator=gen) * _pick(gen, (0.0, 1e-6, 0.1, 1.0, 1e3 if low
+                                                          else 1e6))).to(dtype)
+    moved = torch.cat([positions[:split], positions[split:] + offset])
+    kind = _randint(gen, 1, 3) if _chance(gen, 0.5) else 0
+    if kind == 0:
+        view = tr.camera.orbit(torch.tensor([_rand(gen, 0.0, 360.0) for _ in range(b)]),
+                               torch.tensor([_rand(gen, -20.0, 70.0) for _ in range(b)]),
+                               torch.tensor([_rand(gen, 0.5, 6.0) for _ in range(b)]),
+                               torch.tensor([0.0, 0.3, 0.0]))
+    else:
+        eye = (positions[_randint(gen, 0, len(positions) - 1)].detach().float() if kind == 1
+               else torch.tensor([0.0, 0.5, 0.0]) if kind == 2 else torch.tensor([0.0, 1.0, 3.0]))
+        target = torch.tensor([0.0, 0.3, 0.0]) if kind != 3 else torch.tensor([0.0, 1.0, 9.0])
+        view = tr.camera.look_at(eye, target + 1e-3)
+    return OtherFrame(moved, view.to(dtype), proj)
+
+
+def scene_motion(gen: torch.Generator, scene: tr.RenderScene, c: Counter) -> None:
+    """The flow / motion channels of ``scene`` (the stage) forward and backward in a random
+    dtype (half precision included), supersampling and batch, with hostile motions and
+    other-frame cameras; counts NaN/Inf and violated invariants."""
+    dtype = _pick(gen, (torch.float32, torch.float64, torch.float16, torch.bfloat16))
+    positions = scene.positions.detach().to(dtype).requires_grad_(True)
+    scene.positions = positions
+    scene.uvs = scene.tangents = None
+    scene.materials = [None, tr.Material(base_color_factor=torch.tensor(
+        [1.0, 1.0, 1.0, 0.0]), alpha_mode="MASK") if _chance(gen, 0.3) else None]
+    b = _randint(gen, 1, 2)
+    view = tr.camera.orbit(torch.tensor([_rand(gen, 0.0, 360.0) for _ in range(b)]),
+                           torch.tensor([_rand(gen, -20.0, 70.0) for _ in range(b)]),
+                           torch.tensor([_rand(gen, 1.5, 6.0) for _ in range(b)]),
+                           torch.tensor([0.0, 0.3, 0.0])).to(dtype)
+    res = (_randint(gen, 4, 32), _randint(gen, 4, 32))
+    proj = tr.camera.perspective(_rand(gen, 20.0, 90.0), res[1] / res[0], 0.01).to(dtype)
+    split = 25  # _stage's plane vertices come first
+    nxt = _other_frame(gen, positions, split, b, proj)
+    prev = _other_frame(gen, positions, split, b, proj)
+    renderer = tr.Renderer(res, shading="unlit", supersample=_randint(gen, 1, 3),
+                           cull_backfaces=_chance(gen, 0.3))
+    out = renderer(scene, view, proj, channels=MOTION, next_frame=nxt, previous_frame=prev)
+    gb = out.gbuffer
+    c["covered"] += int((gb["mask"] > 0).sum())
+    c["nonfinite_gbuffer"] += sum(_nonfinite(v) for v in gb.values())
+    empty = gb["mask"] == 0
+    errors = 0
+    for name in ("flow_forward_valid", "flow_backward_valid"):
+        v = gb[name]
+        errors += int(((v != 0) & (v != 1)).sum() + ((v != 0) & empty).sum())
+    for name in ("flow_forward", "flow_backward", "motion"):
+        errors += int(((gb[name] != 0) & empty).sum())
+    if renderer.supersample == 1 and dtype in (torch.float32, torch.float64):
+        scale = torch.tensor([2 / res[1], -2 / res[0]], dtype=dtype).view(1, 2, 1, 1)
+        want = -gb["flow_backward"] * scale
+        errors += int(((gb["motion"] - want).abs() > 1e-4 * (1 + want.abs())).sum())
+    c["motion_errors"] += errors
+    loss = sum((v.float() * torch.randn(v.shape, generator=gen)).sum()
+               for k, v in gb.items() if v.is_floating_point() and v.requires_grad)
+    grad = torch.autograd.grad(loss, positions, allow_unused=True)[0] if isinstance(
+        loss, torch.Tensor) and loss.requires_grad else None
+    c["grad_values"] += 0 if grad is None else grad.numel()
+    # float16: the flow's gradient near the other camera's plane (flows of hundreds of
+    # pixels) exceeds float16's range in rasterize's float16 backward; counted apart
+    key = "motion_f16_overflow" if dtype == torch.float16 else "nonfinite_grad_positions"
+    c[key] += _nonfinite(grad)
+
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])

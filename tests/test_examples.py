@@ -71,6 +71,15 @@ def test_material_light_from_views(tmp_path: Path) -> None:
     assert (tmp_path / "material.png").is_file()
 
 
+
+def test_recover_motion_from_flow() -> None:
+    """A translation recovered from its rendered optical flow (32 px, 60 steps)."""
+    example = load_example("recover_motion_from_flow")
+    result = example.main(["--iterations", "60", "--resolution", "32", "--lr", "0.03",
+                           "--quiet"])
+    start = float(result["t_true"].norm())  # the error of the starting point t = 0
+    assert result["error"] < 0.05 * start
+
 @pytest.mark.slow
 def test_pose_from_silhouettes_reaches_half_a_degree(tmp_path: Path) -> None:
     """The full-size claim: every camera within 0.5 degrees (about half a minute)."""

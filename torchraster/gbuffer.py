@@ -23,7 +23,24 @@ emissive   (B, 3, H, W) linear emitted radiance (factor x texture)
 mask       (B, 1, H, W) 1 covered, 0 empty
 face_id    (B, 1, H, W) int64 face index, -1 where empty
 uv         (B, 2, H, W) texture coordinates
+instance   (B, 1, H, W) int64 object id 1..N of the visible face (``face_object``), 0 where empty
+semantic   (B, 1, H, W) int64 category id of that object (``object_category``), 0 where empty
+object_c.  (B, 3, H, W) ``object_coords``: NOCS coordinates of the visible point
+distance   (B, 1, H, W) Euclidean distance from the camera centre (ray length); 0 where empty
+amodal     (B, N, H, W) bool: object k + 1's whole silhouette, as if drawn alone (Renderer only)
+flow_fwd.  (B, 2, H, W) ``flow_forward``: pixels (x right, y down) the visible point moves to the
+                        next frame (:mod:`~torchraster.motion`; Renderer only, ``next_frame``)
+flow_bwd.  (B, 2, H, W) ``flow_backward``: the same to the previous frame (``previous_frame``)
+*_valid    (B, 1, H, W) ``flow_forward_valid`` / ``flow_backward_valid``: 1 where the point is
+                        in the other frame's view and not occluded there, else 0
+motion     (B, 2, H, W) NDC xy now minus NDC xy at the previous frame (TAA motion vectors)
 =========  ===========  =====================================================================
+
+Label channels (face_id, instance, semantic, object_coords, distance, amodal and the flow /
+motion channels) are exact: taken from the visible face, never averaged. When a supersampled
+frame is reduced (:meth:`GBuffer.downsample`, factor s) they keep ONE sub-sample per output
+pixel, the one nearest its centre (ties to the top-left): index ``(s - 1) // 2`` of each
+``s x s`` block; the other float channels are box-filtered.
 """
 
 from __future__ import annotations
@@ -43,12 +60,24 @@ from .numerics import safe_normalize
 from .raster import Fragments, interpolate_packed, to_image
 from .texture import MipTexture
 
-#: Channel name -> number of image channels C.
-CHANNEL_SIZES: dict[str, int] = {
+#: Channel name -> number of image channels C ("N": one per object, known per scene).
+CHANNEL_SIZES: dict[str, int | str] = {
     "depth": 1, "position": 3, "normal": 3, "albedo": 3, "alpha": 1, "metallic": 1,
     "roughness": 1, "ao": 1, "emissive": 3, "mask": 1, "face_id": 1, "uv": 2,
+    "instance": 1, "semantic": 1, "object_coords": 3, "distance": 1, "amodal": "N",
+    "flow_forward": 2, "flow_backward": 2, "flow_forward_valid": 1,
+    "flow_backward_valid": 1, "motion": 2,
 }
 CHANNELS = tuple(CHANNEL_SIZES)
+#: Channels reduced by picking one sub-sample per pixel (not box-filtered) in
+#: :meth:`GBuffer.downsample`; names not in CHANNELS are ignored.
+LABEL_CHANNELS = frozenset({
+    "face_id", "instance", "semantic", "object_coords", "distance", "amodal",
+    "flow_forward", "flow_backward", "flow_forward_valid", "flow_backward_valid", "motion"})
+#: Channels that are not floating point.
+_INTEGER_CHANNELS = {"face_id", "mask", "instance", "semantic", "amodal"}
+#: Channels computed from the visible face's identity (``face_object``).
+_IDENTITY_CHANNELS = {"instance", "semantic"}
 _MATERIAL_CHANNELS = {"albedo", "alpha", "metallic", "roughness", "ao", "emissive", "normal"}
 _SLOTS = {"albedo": "base_color", "alpha": "base_color", "metallic": "metallic_roughness",
           "roughness": "metallic_roughness", "ao": "occlusion", "emissive": "emissive",
@@ -83,13 +112,23 @@ class GBuffer:
     mask: torch.Tensor | None = None
     face_id: torch.Tensor | None = None
     uv: torch.Tensor | None = None
+    instance: torch.Tensor | None = None
+    semantic: torch.Tensor | None = None
+    object_coords: torch.Tensor | None = None
+    distance: torch.Tensor | None = None
+    amodal: torch.Tensor | None = None
+    flow_forward: torch.Tensor | None = None
+    flow_backward: torch.Tensor | None = None
+    flow_forward_valid: torch.Tensor | None = None
+    flow_backward_valid: torch.Tensor | None = None
+    motion: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         size = None
         for name in self.channels():
             value = getattr(self, name)
             check_tensor(f"GBuffer.{name}", value, ("B", CHANNEL_SIZES[name], "H", "W"),
-                         floating=name not in ("face_id", "mask"))
+                         floating=name not in _INTEGER_CHANNELS)
             bhw = (value.shape[0], value.shape[2], value.shape[3])
             if size is None:
                 size, first = bhw, name
@@ -117,13 +156,19 @@ class GBuffer:
         return dataclasses.replace(self, **channels)
 
     def downsample(self, factor: int) -> GBuffer:
-        """Box-filter float channels by ``factor`` (integer channels take the top-left
-        sample of each block): ``(B, C, s*H, s*W) -> (B, C, H, W)``."""
+        """Reduce a supersampled G-buffer: ``(B, C, s*H, s*W) -> (B, C, H, W)``.
+
+        Label channels (:data:`LABEL_CHANNELS`) and integer channels take the sub-sample
+        nearest each pixel centre, ties to the top-left: index ``(s - 1) // 2`` of each
+        ``s x s`` block (an exact label, never a blend of two objects); the other float
+        channels are box-filtered."""
         if factor == 1:
             return self
+        k = (factor - 1) // 2
         out = {}
         for name, v in self.as_dict().items():
-            out[name] = (v[:, :, ::factor, ::factor] if not v.is_floating_point()
+            out[name] = (v[:, :, k::factor, k::factor]
+                         if name in LABEL_CHANNELS or not v.is_floating_point()
                          else torch.nn.functional.avg_pool2d(v, factor))
         return GBuffer(**out)
 
@@ -142,7 +187,7 @@ def required_inputs(channels: Iterable[str], materials: Sequence[Material | None
     {"position", "normal", "uv", "uv_derivatives", "tangent", "texture:<slot>"}."""
     channels = check_channels(channels)
     need: set[str] = set()
-    if channels & {"position", "depth"}:
+    if channels & {"position", "depth", "distance"}:
         need.add("position")
     if "normal" in channels:
         need.add("normal")
@@ -221,6 +266,9 @@ def geometry_pass(
     texture_filter: str = "trilinear",
     mip_cache: MipCache | None = None,
     max_anisotropy: int = 16,
+    face_object: torch.Tensor | None = None,
+    object_category: torch.Tensor | None = None,
+    object_coords: torch.Tensor | None = None,
 ) -> GBuffer:
     """Compute the requested G-buffer channels (see the module table).
 
@@ -238,6 +286,10 @@ def geometry_pass(
         texture_filter: ``"trilinear" | "anisotropic" | "bilinear" | "nearest"``.
         mip_cache: a :class:`MipCache` reused across calls for constant textures.
         max_anisotropy: probes a pixel at most for ``texture_filter="anisotropic"``.
+        face_object: ``(F,)`` int64 object id of each face (required for ``instance`` and
+            ``semantic``).
+        object_category: ``(N + 1,)`` int64 category of each object id (``semantic``).
+        object_coords: ``(B, V, 3)`` or ``(V, 3)`` NOCS coordinates (``object_coords``).
 
     Returns:
         A :class:`GBuffer` holding exactly the requested channels, each ``(B, C, H, W)``.
@@ -252,7 +304,16 @@ def geometry_pass(
         out["mask"] = frags.mask.to(dtype)
     if "face_id" in channels:
         out["face_id"] = frags.face_id.unsqueeze(1)
-    if not channels - {"mask", "face_id"}:
+    if "amodal" in channels:
+        raise ValueError("channels: 'amodal' is rendered by the Renderer (one rasterization "
+                         "per object), not by geometry_pass")
+    out.update(_identity_channels(frags, channels, face_object, object_category))
+    if "object_coords" in channels:
+        if object_coords is None:
+            raise ValueError("object_coords: required by the 'object_coords' channel")
+        out["object_coords"] = to_image(interpolate_packed(object_coords.to(dtype), frags)[0],
+                                        frags)
+    if not channels - {"mask", "face_id", "object_coords"} - _IDENTITY_CHANNELS:
         return GBuffer(**out)
 
     pos = interpolate_packed(positions, frags)[0] if "position" in need else None  # (3, N)
@@ -263,6 +324,11 @@ def geometry_pass(
             0, frags.items)  # (N, 4) third row of each pixel's view matrix
         z_view = (rows[:, :3] * pos.T).sum(-1) + rows[:, 3]
         out["depth"] = to_image(-z_view[None], frags)
+    if "distance" in channels:  # |view-space point|: the ray length from the eye
+        rows = view.to(dtype).expand(frags.face_id.shape[0], 4, 4)[:, :3].index_select(
+            0, frags.items)  # (N, 3, 4)
+        p_view = (rows[:, :, :3] * pos.T[:, None]).sum(-1) + rows[:, :, 3]  # (N, 3)
+        out["distance"] = to_image(_norm_rows(p_view)[None], frags)
 
     uv = duv_dx = duv_dy = None
     if "uv" in need:
@@ -351,6 +417,37 @@ def geometry_pass(
             nrm = torch.where(frags.front_facing[None], nrm, -nrm)
         out["normal"] = to_image(nrm, frags)
     return GBuffer(**out)
+
+
+def _identity_channels(frags: Fragments, channels: set[str], face_object: torch.Tensor | None,
+                       object_category: torch.Tensor | None) -> dict[str, torch.Tensor]:
+    """``instance`` / ``semantic`` ``(B, 1, H, W)`` int64 of the visible faces (0 empty)."""
+    wanted = channels & _IDENTITY_CHANNELS
+    if not wanted:
+        return {}
+    if face_object is None:
+        raise ValueError(f"face_object: required by the {sorted(wanted)} channel(s)")
+    if "semantic" in wanted and object_category is None:
+        raise ValueError("object_category: required by the 'semantic' channel")
+    device = frags.pixels.device
+    face = frags.face_id.view(-1).index_select(0, frags.pixels)
+    inst = face_object.to(device=device, dtype=torch.int64).index_select(0, face)
+    out = {}
+    if "instance" in wanted:
+        out["instance"] = to_image(inst[None], frags, fill=0)
+    if "semantic" in wanted:
+        cat = object_category.to(device=device, dtype=torch.int64).index_select(0, inst)
+        out["semantic"] = to_image(cat[None], frags, fill=0)
+    return out
+
+
+def _norm_rows(v: torch.Tensor) -> torch.Tensor:
+    """Euclidean norm of the rows of ``v`` ``(N, 3)`` -> ``(N,)``, with a zero (not NaN)
+    gradient at the zero vector."""
+    len2 = (v * v).sum(-1)
+    ok = len2 > 0
+    return torch.where(ok, torch.where(ok, len2, torch.ones_like(len2)).sqrt(),
+                       torch.zeros_like(len2))
 
 
 def _sample_atlases(mat: Material, slots: list[str], uv: torch.Tensor, duv_dx: torch.Tensor,

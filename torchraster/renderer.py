@@ -38,9 +38,19 @@ from .dissolve import Dissolve
 from .gbuffer import CHANNELS, GBuffer, MipCache, check_channels, geometry_pass
 from .material import Material
 from .mesh import transform_points, vertex_normals
-from .numerics import safe_normalize
+from .motion import (
+    MOTION_CHANNELS,
+    OtherFrame,
+    flow_from,
+    motion_from,
+    other_frame_depth,
+    reproject,
+    validity_from,
+)
+from .numerics import finish_low_precision, safe_normalize
 from .post.ssr import environment_specular, specular_weight
 from .raster import antialias, rasterize
+from .raster.rasterize import rasterize_depth
 from .scene import RenderScene, as_render_scene
 from .shading.ibl import Environment, shade_ibl
 from .shading.lighting import shade
@@ -77,6 +87,11 @@ _SHADING_NEEDS = {
     "headlight": {"position", "normal", "albedo", "mask"},
     "unlit": {"albedo", "emissive", "mask"},
 }
+#: Temporaries of one chunk of the amodal pass (bytes; each item is one object of one view).
+AMODAL_MEMORY_BUDGET = 256 * 2**20
+#: The G-buffer channels that need a RenderScene identity field (the field's name).
+_LABEL_NEEDS = {"instance": ("face_object",), "semantic": ("face_object", "object_category"),
+                "amodal": ("face_object",), "object_coords": ("object_coords",)}
 _TEXTURE_SLOTS = ("base_color_texture", "metallic_roughness_texture", "normal_texture",
                   "occlusion_texture", "emissive_texture")
 
@@ -133,6 +148,11 @@ class RenderPlan:
             mirror ray hits (:mod:`~torchraster.post.ssr`): ``Renderer(ssr=SSR(...))``,
             ``"pbr"`` shading, no ``BLEND`` material, and some material smooth enough
             (roughness factor below the cut-off, or a metallic-roughness texture).
+        amodal: the number N of objects whose whole silhouettes are rasterized (the
+            ``amodal`` channel, step ``amodal N objects``); 0 when not requested.
+        motion: the steps of the motion pass (:mod:`~torchraster.motion`), one per
+            requested channel: ``"flow forward"``, ``"flow forward valid"``,
+            ``"flow backward"``, ``"flow backward valid"``, ``"motion vectors"``.
 
     Iterating a plan yields its human-readable :attr:`steps`.
     """
@@ -159,6 +179,8 @@ class RenderPlan:
     ibl_specular: str = "split_sum"
     anisotropy: int = 0
     ssr: bool = False
+    amodal: int = 0
+    motion: tuple[str, ...] = ()
 
     @property
     def steps(self) -> list[str]:
@@ -167,6 +189,9 @@ class RenderPlan:
         layers = f" {self.layers} layers" if self.layers > 1 else ""
         steps = [f"rasterize {self.resolution[0]}x{self.resolution[1]}{layers}{cull}",
                  "gbuffer " + ",".join(sorted(self.channels))]
+        if self.amodal:
+            steps.append(f"amodal {self.amodal} objects")
+        steps += list(self.motion)
         if self.anisotropy:
             steps.append(f"anisotropic texture filtering {self.anisotropy}x")
         if self.shading in LIT_MODELS:
@@ -267,8 +292,14 @@ def _check_camera(name: str, m: torch.Tensor) -> torch.Tensor:
         m = m.unsqueeze(0)
     check_tensor(name, m, ("B", 4, 4), floating=True, finite=True)
     m64 = m.detach().to(torch.float64)
-    # |det| relative to the largest entry's 4th power: scale-free test for rank < 4
-    singular = torch.linalg.det(m64).abs() <= 1e-14 * m64.abs().amax((-2, -1)) ** 4
+    # scale-free test for rank < 4: equilibrate rows, then columns, by their largest entry
+    # (a diagonal scaling changes no rank), then compare the singular values. Units and
+    # translations (a camera km from the origin) scale rows and columns, not the rank.
+    for dim in (-1, -2):
+        big = m64.abs().amax(dim, keepdim=True)
+        m64 = m64 / torch.where(big > 0, big, torch.ones_like(big))
+    sv = torch.linalg.svdvals(m64)  # (B, 4), descending
+    singular = sv[..., -1] <= 1e-12 * sv[..., 0]
     if bool(singular.any()):
         bad = singular.nonzero().flatten().tolist()
         raise ValueError(f"{name}: matrix of batch item(s) {bad} is singular (e.g. all zero, "
@@ -463,7 +494,8 @@ class Renderer(nn.Module):
         if self.dissolve is not None:
             alpha = "mask" if alpha == "none" else alpha  # discarded surfaces show what is behind
         ssr = self._plan_ssr(scene, shading, alpha)
-        channels = set(requested) | _SHADING_NEEDS[shading] | (
+        _check_label_fields(scene, requested)
+        channels = (set(requested) - {"amodal"}) | _SHADING_NEEDS[shading] | (
             {"depth"} if ssao or ssr else set())
         if alpha != "none":
             channels.add("alpha")
@@ -508,7 +540,9 @@ class Renderer(nn.Module):
             multiscatter=self.multiscatter and shading == "pbr" and bool(
                 light_kinds or environment is not None),
             ibl_specular=environment.specular_mode if environment is not None
-            else "split_sum", ssr=ssr)
+            else "split_sum", ssr=ssr,
+            amodal=scene.num_objects if "amodal" in requested else 0,
+            motion=_motion_steps(requested))
 
     def _plan_ssr(self, scene: RenderScene, shading: str, alpha: str) -> bool:
         """SSR runs for ``"pbr"`` when some material may be smoother than the cut-off."""
@@ -592,6 +626,8 @@ class Renderer(nn.Module):
         lights: Lights | None = None,
         environment: Environment | None = None,
         channels: Iterable[str] = (),
+        next_frame: OtherFrame | None = None,
+        previous_frame: OtherFrame | None = None,
     ) -> RenderOutput:
         """Render a batch of scenes.
 
@@ -602,6 +638,11 @@ class Renderer(nn.Module):
             lights: :class:`Lights` of batch size B or 1, or None.
             environment: an :class:`Environment` for image-based lighting / background.
             channels: G-buffer channels to return (see :data:`CHANNELS`).
+            next_frame: the vertex positions (same vertices) and camera of the next frame,
+                a :class:`~torchraster.motion.OtherFrame`; needed by ``flow_forward`` and
+                ``flow_forward_valid``.
+            previous_frame: likewise for the previous frame; needed by ``flow_backward``,
+                ``flow_backward_valid`` and ``motion``.
 
         Returns:
             :class:`RenderOutput` (image, alpha, requested G-buffer channels, plan).
@@ -610,6 +651,8 @@ class Renderer(nn.Module):
         view = _check_camera("view", view)
         proj = _check_camera("proj", proj)
         plan = self.plan(scene, lights, environment, channels)
+        frames = _check_frames(plan.requested, next_frame=next_frame,
+                               previous_frame=previous_frame)
         log.debug("torchraster plan: %s", plan)
 
         positions = scene.positions
@@ -619,6 +662,8 @@ class Renderer(nn.Module):
             if n not in (1, b):
                 raise ValueError(f"{name}: batch size {n} does not match the others' {b} "
                                  "(use 1 to share)")
+        for name, frame in frames.items():
+            frame.check_against(name, positions.shape[-2], b)
         view, proj = view.expand(b, 4, 4), proj.expand(b, 4, 4)
         clip = transform_points(positions, (proj @ view).to(positions.dtype))
         if clip.shape[0] != b:
@@ -637,8 +682,12 @@ class Renderer(nn.Module):
                              normals=normals, uvs=scene.uvs, tangents=scene.tangents,
                              face_material=scene.face_material, materials=scene.materials,
                              texture_filter=self.texture_filter, mip_cache=self.mip_cache,
-                             max_anisotropy=self.max_anisotropy)
+                             max_anisotropy=self.max_anisotropy, face_object=scene.face_object,
+                             object_category=scene.object_category,
+                             object_coords=scene.object_coords)
                for f in layers]
+        if plan.motion:  # per layer: the alpha modes then select them like the other channels
+            gbs = _motion_channels(plan, scene, layers, gbs, frames, face_ranges)
         eye = camera_position(view.to(positions.dtype))
         groups = None
         if plan.shadow_lights:
@@ -692,7 +741,8 @@ class Renderer(nn.Module):
                     colors.append(radiance_of(g, f.face_id, None if glows is None else glows[k]))
                     used.append(a)
                     transmittance = transmittance * (1 - a)
-                radiance, transmittance = composite_over(colors, used)
+                radiance, transmittance = composite_over(  # like: nothing opaque in view
+                    colors, used, like=(gbs[0].albedo, opacity[0]))
                 gb = select_layers(gbs, first_opaque(opacity))
         if plan.ssr:  # replace the environment's specular where the mirror rays hit
             radiance = self._reflect(plan, gb, radiance, coverage, view, proj, eye, lights,
@@ -718,6 +768,8 @@ class Renderer(nn.Module):
                              scene.faces)
             image, alpha = both[:, :3], both[:, 3:]
         outputs = GBuffer(**{ch: getattr(gb, ch) for ch in plan.requested})
+        if "amodal" in plan.requested:
+            outputs = outputs.replace(amodal=_amodal_masks(plan, scene, clip, face_ranges, b))
         if plan.supersample > 1:
             s = plan.supersample
             image, alpha = F.avg_pool2d(image, s), F.avg_pool2d(alpha, s)
@@ -875,6 +927,112 @@ def _caster_bounds(positions: torch.Tensor, faces: torch.Tensor,
             rows.append(torch.stack([p.amin(0), p.amax(0)]))
         out = torch.stack(rows)
         return out.expand(b, 2, 3) if out.shape[0] == 1 else out
+
+
+def _check_label_fields(scene: RenderScene, requested: set[str]) -> None:
+    """A ValueError naming the requested label channel and the RenderScene field it lacks."""
+    for channel in sorted(requested & set(_LABEL_NEEDS)):
+        for name in _LABEL_NEEDS[channel]:
+            if getattr(scene, name) is None:
+                raise ValueError(
+                    f"channels: {channel!r} needs RenderScene.{name}, which this scene does "
+                    "not have (build the scene with RenderScene.from_objects, or set it)")
+
+
+def _amodal_masks(plan: RenderPlan, scene: RenderScene, clip: torch.Tensor,
+                  face_ranges: torch.Tensor | None, b: int) -> torch.Tensor:
+    """``(B, N, H, W)`` bool: each object's silhouette drawn alone (nothing occludes it).
+
+    One depth-only rasterization of B * N items, item (b, k) drawing the faces of object
+    k + 1 within batch item b's ``face_ranges``, in chunks of at most
+    :data:`AMODAL_MEMORY_BUDGET` bytes; culling as in the main pass, alpha cut-outs ignored
+    (the geometric silhouette, like shadow maps)."""
+    n = plan.amodal
+    h, w = plan.resolution
+    device = clip.device
+    objects = scene.object_face_ranges().to(device)  # (N, 2)
+    if face_ranges is None:
+        items = torch.tensor([[0, scene.faces.shape[0]]], device=device).expand(b, 2)
+    else:
+        items = face_ranges.to(device)
+    start = torch.maximum(items[:, None, 0], objects[None, :, 0]).reshape(-1)
+    end = torch.minimum(items[:, None, 1], objects[None, :, 1]).reshape(-1)
+    ranges = torch.stack([start, torch.maximum(start, end)], 1)  # (B * N, 2)
+    todo = (end > start).nonzero().flatten()  # objects with faces in the item
+    out = torch.zeros(b * n, h, w, dtype=torch.bool, device=device)
+    shared = clip.shape[0] == 1 or clip.stride(0) == 0
+    per_item = h * w * 16 + clip.shape[1] * 4 * clip.element_size()
+    chunk = max(1, AMODAL_MEMORY_BUDGET // per_item)
+    cull = _cull_mask(plan, scene)
+    with torch.no_grad():
+        for idx in todo.split(chunk):
+            pos = clip[:1].expand(idx.numel(), -1, -1) if shared else clip.index_select(
+                0, idx // n)
+            depth = rasterize_depth(pos.detach(), scene.faces, plan.resolution, cull,
+                                    ranges.index_select(0, idx))
+            out[idx] = torch.isfinite(depth)
+    return out.view(b, n, h, w)
+
+
+_MOTION_STEPS = {"flow_forward": "flow forward", "flow_forward_valid": "flow forward valid",
+                 "flow_backward": "flow backward", "flow_backward_valid": "flow backward valid",
+                 "motion": "motion vectors"}
+
+
+def _motion_steps(requested: Iterable[str]) -> tuple[str, ...]:
+    """The plan's motion steps, in a fixed order, for the requested channels."""
+    return tuple(step for ch, step in _MOTION_STEPS.items() if ch in requested)
+
+
+def _check_frames(requested: Iterable[str], **frames: OtherFrame | None
+                  ) -> dict[str, OtherFrame]:
+    """The given frames by argument name; a ValueError naming the channel and the missing
+    argument, a TypeError for a frame that is not an OtherFrame."""
+    for name, frame in frames.items():
+        if frame is not None and not isinstance(frame, OtherFrame):
+            raise TypeError(f"{name}: expected a torchraster.motion.OtherFrame or None, got "
+                            f"{type(frame).__name__}")
+    for ch in sorted(set(requested) & set(MOTION_CHANNELS)):
+        arg = MOTION_CHANNELS[ch]
+        if frames[arg] is None:
+            raise ValueError(f"channels: {ch!r} needs {arg}= (an OtherFrame with the vertex "
+                             f"positions and camera of that frame); {arg} is None")
+    return {name: f for name, f in frames.items() if f is not None}
+
+
+def _motion_channels(plan: RenderPlan, scene: RenderScene, layers: Sequence, gbs: list[GBuffer],
+                     frames: dict[str, OtherFrame], face_ranges: torch.Tensor | None
+                     ) -> list[GBuffer]:
+    """Each layer's G-buffer with the requested flow / motion channels of its visible
+    surface (:mod:`~torchraster.motion`). Flow is in output pixels (divided by the
+    supersampling factor: the label reduction keeps one sub-sample); the other frame is
+    rasterized once per frame for validity, with the main pass's culling."""
+    want = plan.requested
+    extra: list[dict[str, torch.Tensor]] = [{} for _ in layers]
+    dtype = scene.positions.dtype
+    for name, flow_ch in (("next_frame", "flow_forward"), ("previous_frame", "flow_backward")):
+        valid_ch = flow_ch + "_valid"
+        mv = "motion" in want and name == "previous_frame"
+        if not (flow_ch in want or valid_ch in want or mv):
+            continue
+        frame = frames[name]
+        other = None
+        if valid_ch in want:
+            clip = transform_points(frame.positions, frame.proj @ frame.view)
+            other = other_frame_depth(clip if clip.dim() == 3 else clip[None], scene.faces,
+                                      plan.resolution, frame.proj,
+                                      cull_backfaces=_cull_mask(plan, scene),
+                                      face_ranges=face_ranges)
+        for k, f in enumerate(layers):
+            rep = reproject(f, scene.faces, frame.positions, frame.view, frame.proj)
+            if flow_ch in want:
+                extra[k][flow_ch] = finish_low_precision(flow_from(rep) / plan.supersample,
+                                                         dtype)
+            if mv:
+                extra[k]["motion"] = finish_low_precision(motion_from(rep), dtype)
+            if other is not None:
+                extra[k][valid_ch] = validity_from(rep, other).to(dtype)
+    return [g.replace(**e) for g, e in zip(gbs, extra, strict=True)]
 
 
 def _cull_mask(plan: RenderPlan, scene: RenderScene) -> bool | torch.Tensor:
