@@ -104,10 +104,10 @@ def test_bad_devices_are_one_line(tmp_path, capsys, device):
 def test_a_failing_view_is_reported_and_the_others_render(tmp_path, capsys, monkeypatch):
     real = pipeline.build_camera
 
-    def flaky(cam, positions, resolution):
+    def flaky(cam, *args):
         if cam.name == "bad":
             raise RuntimeError("boom inside torch")
-        return real(cam, positions, resolution)
+        return real(cam, *args)
 
     monkeypatch.setattr(pipeline, "build_camera", flaky)
     text = BASE + "cameras:\n  - name: good\n  - name: bad\n  - name: also_good\n"
@@ -237,7 +237,7 @@ def test_ctrl_c_exits_130_with_one_line(tmp_path, capsys, monkeypatch):
     def interrupted(cfg, device):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(pipeline, "iter_render", interrupted)
+    monkeypatch.setattr(pipeline, "view_renderer", interrupted)
     assert _run(tmp_path, _write(tmp_path, BASE)) == 130
     err = capsys.readouterr().err
     assert err.strip().endswith("interrupted") and "Traceback" not in err

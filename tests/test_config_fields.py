@@ -29,10 +29,12 @@ from skimage import io as skio
 
 import torchraster as tr
 from torchraster.config import Channel, RenderFile, check_config
+from torchraster.config.schema import FLOW_CHANNELS
 from torchraster.hdr_io import write_hdr
 from torchraster.pipeline import render_config
 
-CHANNELS = list(typing.get_args(Channel))
+#: Every channel of one frame (the flow channels need two: DATASET_VARIATIONS request them).
+CHANNELS = [c for c in typing.get_args(Channel) if c not in FLOW_CHANNELS]
 
 #: Fields that cannot change a rendered pixel, with the reason.
 METADATA: dict[str, str] = {
@@ -45,6 +47,11 @@ METADATA: dict[str, str] = {
                        "(tests/test_config_cli.py checks the files)",
     "scene.objects.name": "a label; the default material name of a primitive "
                           "(scene.objects.material.name shows names act through overrides)",
+    "outputs.exports": "dataset files made from the rendered views after the run "
+                       "(tests/test_dataset_labels.py checks them)",
+    "outputs.previews": "extra PNGs of the same ids in colours (tests/test_dataset_labels.py)",
+    "scene.objects.keypoints": "projected into the manifest records, not drawn "
+                               "(tests/test_dataset_labels.py)",
 }
 
 #: Fields that are accepted but cannot act in a render config: the change must raise
@@ -311,6 +318,72 @@ STYLE_VARIATIONS = {
 }
 
 
+#: Two frames half a second apart, with the flow channels: the dataset fields act over time.
+TWO_FRAMES = {"frames": {"count": 2, "fps": 2.0},
+              "outputs": {"channels": CHANNELS + sorted(FLOW_CHANNELS), "formats": ["npy"]}}
+KEYS = [{"time": 0.0}, {"time": 1.0, "translate": [0.3, 0.0, 0.0], "rotate_deg": [0, 40, 0],
+                        "scale": 1.2}]
+
+
+def _animated(where: str, **change: object) -> tuple[dict, dict]:
+    """The main mesh (``scene``) or an object (``object``) animated; ``change`` edits the
+    animation (``keys`` entries: {index: {field: value}})."""
+    key_change = change.pop("keys", {})
+    keys = [{**k, **key_change.get(i, {})} for i, k in enumerate(KEYS)]
+    base_anim, anim = {"keys": KEYS}, {**change, "keys": keys}
+    if where == "scene":
+        return ({**TWO_FRAMES, "scene": {"animation": base_anim}},
+                {**TWO_FRAMES, "scene": {"animation": anim}})
+    obj = {**PRIMITIVE}
+    return ({**OBJECT_BASE, **TWO_FRAMES, "scene": {"objects": [{**obj, "animation": base_anim}]}},
+            {**OBJECT_BASE, **TWO_FRAMES, "scene": {"objects": [{**obj, "animation": anim}]}})
+
+
+TRAJECTORY = {"trajectory": {"keys": [
+    {"time": 0.0, "eye": [0.5, 1.5, 3.5], "target": [0.0, 0.4, 0.0]},
+    {"time": 1.0, "eye": [2.5, 1.0, 2.5], "target": [0.0, 0.4, 0.0]}]}}
+
+
+def _trajectory(**key1: object) -> tuple[dict, dict]:
+    keys = TRAJECTORY["trajectory"]["keys"]
+    return ({**TWO_FRAMES, "cameras": [TRAJECTORY]},
+            {**TWO_FRAMES, "cameras": [{"trajectory": {"keys": [keys[0], {**keys[1], **key1}]}}]})
+
+
+DATASET_VARIATIONS = {
+    "frames.count": ({}, {"frames": {"count": 2}}),
+    "frames.fps": (_animated("scene")[0], {**_animated("scene")[0],
+                                           "frames": {"count": 2, "fps": 4.0}}),
+    "categories": ({"categories": ["ball", "box"], "scene": {"category": "ball"}},
+                   {"categories": ["box", "ball"], "scene": {"category": "ball"}}),
+    "scene.category": ({}, {"scene": {"category": "ball"}}),
+    "scene.objects.category": ({**OBJECT_BASE}, {**OBJECT_BASE, "scene": {"objects": [
+        {**PRIMITIVE, "category": "box"}]}}),
+    **{f"{prefix}.animation.interpolation": _animated(where, interpolation="step")
+       for prefix, where in (("scene", "scene"), ("scene.objects", "object"))},
+    **{f"{prefix}.animation.euler_order": _animated(where, euler_order="XYZ", keys={
+        1: {"rotate_deg": [30, 40, 0]}}) for prefix, where in (("scene", "scene"),
+                                                              ("scene.objects", "object"))},
+    **{f"{prefix}.animation.keys.{field}": _animated(where, keys={1: {field: value}})
+       for prefix, where in (("scene", "scene"), ("scene.objects", "object"))
+       for field, value in (("time", 2.0), ("translate", [0.0, 0.3, 0.0]),
+                            ("rotate_deg", [0, 80, 0]), ("scale", 0.7))},
+    **{f"{prefix}.animation.keys.rotation": _animated(where, keys={
+        1: {"rotate_deg": None, "rotation": [0.9, 0.0, 0.44, 0.0]}})
+       for prefix, where in (("scene", "scene"), ("scene.objects", "object"))},
+    "cameras.orbit.degrees_per_second": (
+        {**TWO_FRAMES, "cameras": [ORBIT]},
+        {**TWO_FRAMES, "cameras": [{"orbit": {**ORBIT["orbit"], "degrees_per_second": 30}}]}),
+    "cameras.trajectory.interpolation": (
+        {**TWO_FRAMES, "cameras": [TRAJECTORY]},
+        {**TWO_FRAMES, "cameras": [{"trajectory": {**TRAJECTORY["trajectory"],
+                                                   "interpolation": "step"}}]}),
+    "cameras.trajectory.keys.time": _trajectory(time=2.0),
+    "cameras.trajectory.keys.eye": _trajectory(eye=[-2.5, 1.0, 2.5]),
+    "cameras.trajectory.keys.target": _trajectory(target=[0.3, 0.2, 0.0]),
+    "cameras.trajectory.keys.up": _trajectory(up=[0.3, 1.0, 0.0]),
+}
+
 #: field key path -> (base patch, changed patch); patches are merged into BASE (mappings
 #: recursively, lists replaced).
 VARIATIONS: dict[str, tuple[dict, dict]] = {
@@ -455,6 +528,7 @@ VARIATIONS: dict[str, tuple[dict, dict]] = {
     **OBJECT_VARIATIONS,
     **STYLE_VARIATIONS,
     **FOG_VARIATIONS,
+    **DATASET_VARIATIONS,
 }
 
 #: What every variation starts from: a textured ball on a ground plane, all channels.

@@ -22,6 +22,7 @@ the manifest.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import itertools
 import math
@@ -329,8 +330,37 @@ def render_dataset(configs: list[DatasetConfig], out_dir: str | Path, *,
         expected = {j.key: j.expected for j in jobs}
         manifest.write_manifest(out_dir, expected, {dc.name for dc in configs},
                                 records=None if force else records)
+        write_exports(out_dir, configs, say)
     return RunSummary(len(jobs), len(done), written, failed, time.perf_counter() - start,
                       render_seconds, cpu_us / 1e6)
+
+
+def write_exports(out_dir: Path, configs: list[DatasetConfig],
+                  say: Callable[[str], None] = print) -> list[Path]:
+    """Write the ``outputs.exports`` of ``configs`` from the manifest of ``out_dir`` (each
+    format once, over the records of every config that asks for it; a failing export is
+    reported and the others are written). Returns the written paths."""
+    from . import export
+
+    writers = {"coco": export.write_coco, "bop": export.write_bop, "nerf": export.write_nerf,
+               "webdataset": export.write_webdataset}
+    wanted: dict[str, set[str]] = {}
+    for dc in configs:
+        for fmt in dc.cfg.outputs.exports:
+            wanted.setdefault(fmt, set()).add(dc.name)
+    if not wanted:
+        return []
+    records = manifest.read_manifest(out_dir)
+    written = []
+    for fmt, names in wanted.items():
+        mine = [r for r in records if r.get("config") in names]
+        if not mine:
+            continue
+        try:
+            written += writers[fmt](out_dir, mine)
+        except (ValueError, OSError, ImportError) as e:
+            say(f"torchraster: error: export {fmt}: {_one_line(e)}")
+    return written
 
 
 def _render_group(group: list[_Job], dc: DatasetConfig, obj: pipeline.ObjectPlan,
@@ -341,7 +371,9 @@ def _render_group(group: list[_Job], dc: DatasetConfig, obj: pipeline.ObjectPlan
     cfg = obj.config.model_copy(update={"cameras": [j.spec.camera_config for j in group]})
     where = f"{dc.path} [object {obj.name}]" if "/" in obj.views[0].folder else str(dc.path)
     try:
-        renders = list(pipeline.iter_render(cfg, device))
+        render = pipeline.view_renderer(cfg, device)
+        renders = [functools.partial(render, j.spec.camera_config, j.spec.folder or j.spec.camera,
+                                     j.spec.frame) for j in group]
     except Exception as e:  # noqa: BLE001 (one bad object never stops the others)
         message = _one_line(e)
         if (dc.name, message) not in reported:  # e.g. a bad environment: once per config
@@ -361,7 +393,8 @@ def _render_group(group: list[_Job], dc: DatasetConfig, obj: pipeline.ObjectPlan
             result = seeded_call(spec.seed, render)
             t1 = time.perf_counter()
             folder = out_dir / job.key
-            files = pipeline.write_outputs(result, folder, cfg.outputs.formats)
+            files = pipeline.write_outputs(result, folder, cfg.outputs.formats,
+                                           cfg.outputs.previews)
             t2 = time.perf_counter()
             shard.append(manifest.view_record(
                 key=job.key, config=dc.name, config_file=dc.path, cfg=obj.config,
@@ -385,5 +418,5 @@ def _render_group(group: list[_Job], dc: DatasetConfig, obj: pipeline.ObjectPlan
 
 
 __all__ = ["DatasetConfig", "GlobalProgress", "RankMismatchError", "RunSummary", "World",
-           "block",
+           "block", "write_exports",
            "current_rank_and_size", "init_world", "render_dataset", "seeded_call"]

@@ -23,6 +23,13 @@ A record (one JSON object per line)::
                    (4, 4): x right, y down, z forward; pixel (row v, col u) centred at (u, v)
     opengl         world_to_view, view_to_world, projection (4, 4): the renderer's matrices
     lights, environment                          the light set-up as in the config
+    frame, time    the frame index and its time in seconds (``frames:``)
+    categories     category names: id i + 1 is categories[i], 0 the background
+    objects        one entry per instance (torchraster.labels.object_records): instance_id,
+                   name, category, category_id, object_to_world (4, 4) at this frame,
+                   bbox_visible / bbox_amodal [x0, y0, x1, y1] (pixel edges, COCO's), pixels,
+                   pixels_amodal, visible_fraction, box3d {center_model, size_model,
+                   corners_world, corners_camera (OpenCV), corners_pixels}, keypoints
     files          {"color.png": "<config>/<folder>/color.png", ...} relative to DIR
     timings        render_s, write_s; finished_at (Unix time), rank, host
 
@@ -87,7 +94,7 @@ def config_hash(cfg: RenderFile) -> str:
 def expected_fields(cfg_hash: str, spec: ViewSpec) -> dict:
     """What a record must hold for ``spec`` to count as done (see :func:`is_done`)."""
     return {"config_hash": cfg_hash, "camera_config": spec.camera_config.model_dump(mode="json"),
-            "seed": spec.seed, "version": package_version()}
+            "seed": spec.seed, "frame": spec.frame, "version": package_version()}
 
 
 def _rows(m: torch.Tensor) -> list[list[float]]:
@@ -149,6 +156,8 @@ def view_record(*, key: str, config: str, config_file: str | Path, cfg: RenderFi
     record["lights"] = [light.model_dump(mode="json") for light in cfg.lights]
     record["environment"] = (cfg.environment.model_dump(mode="json")
                              if cfg.environment is not None else None)
+    record.update(frame=result.frame, time=result.time, categories=result.categories,
+                  objects=result.objects)
     record["files"] = {p.name: p.relative_to(out_dir).as_posix() for p in files}
     record["timings"] = {k: round(v, 6) for k, v in timings.items()}
     record.update(finished_at=time.time(), rank=rank, host=socket.gethostname())

@@ -29,10 +29,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from . import camera
 from .config import (
     CameraConfig,
     ConfigError,
     RenderFile,
+    SceneObjects,
     build_camera,
     build_setup,
     check_config,
@@ -44,11 +46,17 @@ from .config import (
     view_names,
 )
 from .config import build_scene as build_scene  # re-exported: scripts and examples use it
+from .labels import object_records
+from .motion import OtherFrame
 from .post import EncodeSRGB
 from .renderer import RenderPlan
 
 #: Linear colour channels: encoded to sRGB for PNG.
 _SRGB_CHANNELS = {"albedo", "emissive", "radiance"}
+#: Integer ids written exactly (16-bit PNG, int32 npy).
+_ID_CHANNELS = {"instance", "semantic"}
+#: Flow fields drawn with the colour wheel in PNG.
+_FLOW_CHANNELS = {"flow_forward", "flow_backward", "motion"}
 #: Marker in the names of our temporary files (swept when found at start).
 TEMP_MARKER = ".trtmp-"
 
@@ -65,6 +73,10 @@ class ViewResult:
         mask: ``(1, H, W)`` coverage > 0, for the display encodings.
         view: ``(4, 4)`` world -> view matrix (OpenGL convention) of the camera.
         proj: ``(4, 4)`` projection matrix (view -> clip).
+        frame, time: the frame index and its time in seconds.
+        objects: the manifest's per-object records of this view
+            (:func:`torchraster.labels.object_records`: ids, categories, poses, boxes).
+        categories: the category names (id i + 1 = ``categories[i]``).
     """
 
     name: str
@@ -73,6 +85,10 @@ class ViewResult:
     mask: torch.Tensor = field(repr=False, default_factory=lambda: torch.ones(1, 1, 1))
     view: torch.Tensor | None = field(repr=False, default=None)
     proj: torch.Tensor | None = field(repr=False, default=None)
+    frame: int = 0
+    time: float = 0.0
+    objects: list[dict] | None = field(repr=False, default=None)
+    categories: list[str] | None = field(repr=False, default=None)
 
 
 @dataclass(frozen=True)
@@ -87,6 +103,7 @@ class ViewSpec:
             views, ``""`` (the folder itself) for one.
         seed: the view's seed (:func:`~torchraster.config.stable_seed`).
         camera_config: the concrete camera (named; ``random_orbits`` drawn).
+        frame: the frame index (``frames.count`` > 1 adds ``/<frame:05d>`` to the folder).
     """
 
     object: str
@@ -94,6 +111,7 @@ class ViewSpec:
     folder: str
     seed: int
     camera_config: CameraConfig = field(repr=False)
+    frame: int = 0
 
 
 @dataclass
@@ -128,11 +146,16 @@ def plan_objects(cfg: RenderFile, seed: int = 0) -> list[ObjectPlan]:
     else:
         objects = [(object_name(cfg), cfg.scene.mesh)]
         several = sum(len(names) for names in view_names(cfg)) > 1
+    frames = cfg.frames.count
     plans = []
     for name, mesh in objects:
         cams = expand_cameras(cfg, name, seed)
-        views = [ViewSpec(name, c.name, f"{name}/{c.name}" if in_set else (
-            c.name if several else ""), c.seed, c.camera) for c in cams]
+        views = []
+        for c in cams:
+            base = f"{name}/{c.name}" if in_set else (c.name if several else "")
+            for f in range(frames):
+                folder = "/".join(p for p in (base, f"{f:05d}" if frames > 1 else "") if p)
+                views.append(ViewSpec(name, c.name, folder, c.seed, c.camera, f))
         plans.append(ObjectPlan(name, None if mesh is None else Path(mesh),
                                 object_config(cfg, mesh, [c.camera for c in cams]), views))
     return plans
@@ -144,7 +167,7 @@ def _encode(name: str, img: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         return EncodeSRGB()(img.clamp(0, 1)[None])[0]
     if name == "normal":
         return (img * 0.5 + 0.5) * mask
-    if name == "depth":  # near = bright, far = dark, empty = black
+    if name in ("depth", "distance"):  # near = bright, far = dark, empty = black
         valid = mask[0] > 0
         if not bool(valid.any()):
             return torch.zeros_like(img)
@@ -153,9 +176,71 @@ def _encode(name: str, img: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         return ((hi - img) / max(hi - lo, 1e-12)).clamp(0, 1) * mask
     if name == "face_id":
         return ((img + 1) % 65536).float() / 65535.0
+    if name in _ID_CHANNELS:  # exact 16-bit ids
+        return img.double() / 65535.0
     if name == "uv":
         return torch.cat([img.clamp(0, 1), torch.zeros_like(img[:1])])
+    if name in _FLOW_CHANNELS:
+        return flow_to_color(img) * mask
+    if name == "object_coords":
+        return img.clamp(0, 1) * mask
     return img.clamp(0, 1)
+
+
+#: The Middlebury colour wheel (Baker et al., "A Database and Evaluation Methodology for
+#: Optical Flow", IJCV 2011): hue segments red-yellow 15, yellow-green 6, green-cyan 4,
+#: cyan-blue 11, blue-magenta 13, magenta-red 6.
+_WHEEL_SEGMENTS = ((15, (1, 0, 0), (1, 1, 0)), (6, (1, 1, 0), (0, 1, 0)),
+                   (4, (0, 1, 0), (0, 1, 1)), (11, (0, 1, 1), (0, 0, 1)),
+                   (13, (0, 0, 1), (1, 0, 1)), (6, (1, 0, 1), (1, 0, 0)))
+
+
+def _color_wheel() -> torch.Tensor:
+    rows = []
+    for n, a, b in _WHEEL_SEGMENTS:
+        s = torch.arange(n, dtype=torch.float64)[:, None] / n
+        rows.append(torch.tensor(a, dtype=torch.float64) * (1 - s)
+                    + torch.tensor(b, dtype=torch.float64) * s)
+    return torch.cat(rows)  # (55, 3)
+
+
+def flow_to_color(flow: torch.Tensor, max_norm: float | None = None) -> torch.Tensor:
+    """Colour-wheel picture of a flow field: hue = direction, saturation = length (white =
+    no motion), as in the Middlebury benchmark.
+
+    Args:
+        flow: ``(2, H, W)`` (x right, y down; pixels or any unit).
+        max_norm: the length drawn fully saturated (default: the field's largest).
+
+    Returns:
+        ``(3, H, W)`` float in [0, 1].
+    """
+    f = flow.detach().double().cpu()
+    u, v = f[0], f[1]
+    norm = (u * u + v * v).sqrt()
+    top = float(norm.max()) if max_norm is None else max_norm
+    radius = (norm / top).clamp(max=1) if top > 0 else torch.zeros_like(norm)
+    wheel = _color_wheel()
+    n = wheel.shape[0]
+    angle = torch.atan2(-v, -u) / torch.pi  # in [-1, 1]
+    k = (angle + 1) / 2 * (n - 1)
+    k0 = k.floor().long().clamp(0, n - 1)
+    k1 = (k0 + 1) % n
+    w = (k - k0)[..., None]
+    col = wheel[k0] * (1 - w) + wheel[k1] * w
+    col = 1 - radius[..., None] * (1 - col)
+    return col.permute(2, 0, 1).float()
+
+
+def id_preview(ids: torch.Tensor) -> torch.Tensor:
+    """Distinct colours for integer ids (0 = black): ``(1, H, W)`` -> ``(3, H, W)`` in
+    [0, 1], the same colour for an id in every view (golden-ratio hues)."""
+    i = ids[0].long().cpu()
+    hue = (i.double() * 0.618033988749895) % 1.0
+    h6 = hue * 6
+    c = [((h6 - k) % 6 - 3).abs().sub(1).clamp(0, 1) for k in (0, 4, 2)]  # HSV, s = v = 1
+    rgb = torch.stack(c) * 0.85 + 0.15
+    return torch.where(i[None] > 0, rgb, 0.0).float()
 
 
 def render_config(cfg: RenderFile, device: str | torch.device = "cpu") -> list[ViewResult]:
@@ -175,38 +260,62 @@ def iter_render(cfg: RenderFile, device: str | torch.device = "cpu"
         its camera's name.
 
     Raises:
-        NotImplementedError: for ``post.auto_exposure.rate``: adaptation over time needs a
-            sequence of frames, and a config renders independent stills.
+        NotImplementedError: for ``post.auto_exposure.rate`` (see :func:`view_renderer`).
     """
-    if cfg.post is not None and "rate" in cfg.post.auto_exposure.model_fields_set:
-        raise NotImplementedError(
-            "post.auto_exposure.rate: adaptation over time needs a sequence of frames; a "
-            "render config renders independent stills (fully adapted), so rate would have no "
-            "effect. Remove it (AutoExposure(rate=...) in Python adapts across frames).")
     for obj in plan_objects(cfg):
         render = view_renderer(obj.config, device)
         for v in obj.views:
-            yield lambda v=v, render=render: render(v.camera_config, v.folder or v.camera)
+            yield lambda v=v, render=render: render(v.camera_config, v.folder or v.camera,
+                                                    v.frame)
 
 
 def view_renderer(cfg: RenderFile, device: str | torch.device = "cpu"
-                  ) -> Callable[[CameraConfig, str], ViewResult]:
+                  ) -> Callable[..., ViewResult]:
     """Build what a config's views share (scene, lights, environment, renderer, post chain:
-    :func:`torchraster.config.build_setup`) once; returns ``render(camera, name) ->
-    ViewResult`` for any concrete camera of it.
+    :func:`torchraster.config.build_setup`) once; returns ``render(camera, name, frame=0)
+    -> ViewResult`` for any concrete camera of it and any frame.
+
+    Frame ``i`` is at time ``i / frames.fps``: objects and cameras are posed there. Flow
+    and motion channels use the scene and camera one frame later (``flow_forward``) or
+    earlier (``flow_backward``, ``motion``); animations hold their end keys outside their
+    key times, so the first frame's backward and the last frame's forward flow are defined
+    too. Every view also gets its per-object records (:attr:`ViewResult.objects`).
 
     Args:
         cfg: a config of one object (not a mesh set; see :func:`plan_objects`).
         device: where to render.
     """
+    if cfg.post is not None and "rate" in cfg.post.auto_exposure.model_fields_set:
+        raise NotImplementedError(
+            "post.auto_exposure.rate: a render config renders every view fully adapted (frames "
+            "may render in any order, on any rank), so rate would have no effect. Remove it "
+            "(AutoExposure(rate=...) in Python adapts across the frames you feed it).")
     setup = build_setup(cfg, device)
-    scene, renderer, post, channels = setup.scene, setup.renderer, setup.post, setup.channels
+    objects, renderer, post = setup.objects, setup.renderer, setup.post
     lights, env, res = setup.lights, setup.environment, cfg.render.size
+    frame_framing = setup.scene.positions.cpu()  # orbits frame the scene at time 0
+    wanted = set(cfg.outputs.channels)
+    channels = set(setup.channels) | {"instance"}  # the per-object records need it
+    if any(k is not None for k in objects.keypoints):
+        channels.add("depth")
+    dt = 1.0 / cfg.frames.fps
 
-    def render_view(cam: CameraConfig, name: str) -> ViewResult:
-        view, proj = build_camera(cam, scene.positions.cpu(), res)
+    def other(cam: CameraConfig, t: float) -> OtherFrame:
+        view, proj = build_camera(cam, frame_framing, res, t)
+        return OtherFrame(objects.positions_at(t).to(device), view.to(device), proj.to(device))
+
+    def render_view(cam: CameraConfig, name: str, frame: int = 0) -> ViewResult:
+        t = frame * dt
+        view, proj = build_camera(cam, frame_framing, res, t)
+        scene = objects.at(t)
+        motion = {}
+        if channels & {"flow_forward", "flow_forward_valid"}:
+            motion["next_frame"] = other(cam, t + dt)
+        if channels & {"flow_backward", "flow_backward_valid", "motion"}:
+            motion["previous_frame"] = other(cam, t - dt)
         with torch.no_grad():
-            out = renderer(scene, view.to(device), proj.to(device), lights, env, channels)
+            out = renderer(scene, view.to(device), proj.to(device), lights, env, channels,
+                           **motion)
             depth = out.gbuffer.get("depth")
             if depth is not None:  # the background is far away for depth of field
                 far = depth.amax().clamp(min=1.0) * 100
@@ -216,11 +325,28 @@ def view_renderer(cfg: RenderFile, device: str | torch.device = "cpu"
                                  else radiance.clamp(0, 1))
         images = {"color": color[0], "radiance": radiance[0], "alpha": out.alpha[0]}
         images.update({k: v[0] for k, v in out.gbuffer.items()})
-        images = {k: v for k, v in images.items() if k in cfg.outputs.channels}
+        records = _object_records(objects, t, images, view[0], proj[0], res)
+        images = {k: v for k, v in images.items() if k in wanted}
         return ViewResult(name, images, out.plan, (out.alpha[0] > 0).to(color.dtype),
-                          view[0], proj[0])
+                          view[0], proj[0], frame, t, records, objects.category_names)
 
     return render_view
+
+
+def _object_records(objects: SceneObjects, t: float, images: dict[str, torch.Tensor],
+                    view: torch.Tensor, proj: torch.Tensor, res: tuple[int, int]) -> list[dict]:
+    """The per-object records of one view (see :func:`torchraster.labels.object_records`)."""
+    perspective = float(proj[3, 3]) == 0.0
+    k = camera.intrinsics_from_projection(proj.double().cpu(), res) if perspective else None
+    gl_to_cv = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
+    depth = images.get("depth")
+    return object_records(
+        instance=images["instance"][0].cpu(), object_to_world=objects.object_to_world(t),
+        box_center=objects.box_center, box_size=objects.box_size, names=objects.names,
+        categories=objects.categories, category_ids=objects.category_ids,
+        world_to_camera=gl_to_cv @ view.double().cpu(), k=k,
+        amodal=images["amodal"].cpu() if "amodal" in images else None,
+        depth=depth[0].cpu() if depth is not None else None, keypoints=objects.keypoints)
 
 
 def _umask_mode() -> int:
@@ -275,8 +401,12 @@ def sweep_temp_files(folder: Path) -> list[Path]:
     return removed
 
 
-def write_outputs(result: ViewResult, out_dir: str | Path, formats: list[str]) -> list[Path]:
+def write_outputs(result: ViewResult, out_dir: str | Path, formats: list[str],
+                  previews: bool = False) -> list[Path]:
     """Write a view's channels as ``<out_dir>/<channel>.<fmt>``; returns the written paths.
+    ``amodal`` is always one ``amodal.npy`` ``(N, H, W)`` uint8 stack; ``instance`` and
+    ``semantic`` are exact (16-bit PNG, int32 npy), with ``previews`` also
+    ``<channel>_preview.png`` in distinct colours.
 
     Raises:
         OutputError: naming the file that could not be written.
@@ -287,11 +417,25 @@ def write_outputs(result: ViewResult, out_dir: str | Path, formats: list[str]) -
     sweep_temp_files(out_dir)
     written = []
     for name, img in result.images.items():
+        if name == "amodal":  # (N, H, W) masks: one npy stack whatever the formats
+            path = out_dir / "amodal.npy"
+            masks = img.detach().cpu().to(torch.uint8).numpy()
+            atomic_write(path, lambda p, a=masks: np.save(p, a))
+            written.append(path)
+            continue
+        ids = name in _ID_CHANNELS
+        raw = img.detach().cpu().to(torch.int32 if ids else torch.float32).numpy()
         img = img.detach().float().cpu()
-        raw = img.numpy()
+        if ids and previews and "png" in formats:
+            path = out_dir / f"{name}_preview.png"
+            rgb = (id_preview(img).permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
+            atomic_write(path, lambda p, a=rgb: skio.imsave(p, a, check_contrast=False))
+            written.append(path)
         if "png" in formats:
-            enc = _encode(name, img.to(torch.float64) if name == "face_id" else img, result.mask)
-            bits16 = name in ("depth", "face_id")
+            exact = name == "face_id" or ids
+            enc = _encode(name, result.images[name].detach().cpu().double() if exact else img,
+                          result.mask)
+            bits16 = name in ("depth", "distance", "face_id") or ids
             arr = enc.clamp(0, 1).permute(1, 2, 0).numpy()
             arr = (arr * (65535 if bits16 else 255) + 0.5).astype(np.uint16 if bits16 else np.uint8)
             arr = arr[..., 0] if arr.shape[-1] == 1 else arr
@@ -367,5 +511,6 @@ def render_to_files(cfg: RenderFile, out_dir: str | Path, device: str = "cpu") -
     written = []
     for render in iter_render(cfg, device):
         r = render()
-        written += write_outputs(r, view_folder(out_dir, cfg, r.name), cfg.outputs.formats)
+        written += write_outputs(r, view_folder(out_dir, cfg, r.name), cfg.outputs.formats,
+                                 cfg.outputs.previews)
     return written

@@ -37,7 +37,6 @@ from .build import (
     build_post,
     build_post_chain,
     build_renderer,
-    build_scene,
     build_setup,
     build_shadow_settings,
     build_ssao,
@@ -45,6 +44,7 @@ from .build import (
     lights_from_config,
 )
 from .check import check_config
+from .objects import SceneObjects, build_objects, build_scene
 from .reference import config_reference
 from .schema import (
     MAX_BLOOM_LEVELS,
@@ -55,6 +55,7 @@ from .schema import (
     MAX_SSR_STEPS,
     MAX_SUPERSAMPLED_SIDE,
     AmbientLightConfig,
+    AnimationConfig,
     AutoExposureConfig,
     BackgroundImageConfig,
     BloomConfig,
@@ -70,7 +71,9 @@ from .schema import (
     ExposureConfig,
     FilePath,
     FogConfig,
+    FramesConfig,
     IntrinsicsConfig,
+    KeyframeConfig,
     LightConfig,
     LookAtConfig,
     MaterialOverride,
@@ -90,6 +93,7 @@ from .schema import (
     SSRConfig,
     ToneMapConfig,
     ToonConfig,
+    TrajectoryConfig,
     TransformConfig,
     default_of,
     parse_lights,
@@ -113,7 +117,9 @@ from .views import (
 
 __all__ = [
     "AmbientLightConfig", "AutoExposureConfig", "BackgroundImageConfig", "BloomConfig",
-    "build_camera", "build_dissolve", "build_environment", "build_fog", "build_post",
+    "AnimationConfig", "build_camera", "build_dissolve", "build_objects", "FramesConfig",
+    "KeyframeConfig", "SceneObjects", "TrajectoryConfig", "build_environment", "build_fog",
+    "build_post",
     "build_post_chain", "build_renderer", "build_scene", "build_setup",
     "build_shadow_settings", "build_ssao", "build_ssr", "camera_names", "CameraConfig",
     "Channel", "check_config", "config_reference", "ConfigError", "ConfigPath", "default_of",

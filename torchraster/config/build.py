@@ -11,20 +11,17 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 from pydantic import BaseModel
 
 from .. import camera
+from ..animation import look_at_path
 from ..background import load_background
 from ..dissolve import Dissolve
 from ..hdr_io import read_hdr
-from ..io import load_scene, load_texture
-from ..material import Material
-from ..mesh import Mesh, vertex_normals
-from ..mesh import flat as flat_mesh
 from ..post import (
     SSAO,
     SSR,
@@ -42,19 +39,17 @@ from ..shading.ibl import Environment
 from ..shading.lights import SH_C0, DirectionalLights, Lights, PointLights, SpotLights
 from ..shading.shadows import ShadowSettings
 from ..shading.volumetric import Fog
+from .objects import SceneObjects, build_objects
 from .schema import (
     CameraConfig,
     ConfigError,
     DissolveConfig,
     FogConfig,
-    ObjectConfig,
-    ObjectMaterialConfig,
     PostConfig,
     RenderFile,
     ShadowConfig,
     SSAOConfig,
     SSRConfig,
-    TransformConfig,
     parse_lights,
 )
 
@@ -64,7 +59,9 @@ class RenderSetup:
     """What every view of a one-object config shares (see :func:`build_setup`).
 
     Attributes:
-        scene: the scene, on the render device.
+        scene: the scene at time 0, on the render device.
+        objects: its instances with identity and motion (``objects.at(t)`` poses the scene
+            for another time).
         lights: the lights (batch 1) or None.
         environment: the environment map or None.
         renderer: the :class:`~torchraster.Renderer` of ``render:`` (and ``post.ssao``,
@@ -75,6 +72,7 @@ class RenderSetup:
     """
 
     scene: RenderScene
+    objects: SceneObjects
     lights: Lights | None
     environment: Environment | None
     renderer: Renderer
@@ -90,7 +88,8 @@ def build_setup(cfg: RenderFile, device: str | torch.device = "cpu") -> RenderSe
             :func:`torchraster.pipeline.plan_objects`).
         device: where to render.
     """
-    scene = build_scene(cfg).to(device)
+    objects = build_objects(cfg).to(device)
+    scene = objects.scene
     lights = lights_from_config(cfg.lights, 1, device) if cfg.lights else None
     env = build_environment(cfg, device)
     post = build_post(cfg)
@@ -98,7 +97,7 @@ def build_setup(cfg: RenderFile, device: str | torch.device = "cpu") -> RenderSe
     channels = set(cfg.outputs.channels) - {"color", "radiance", "alpha"}
     if post.dof.enabled:
         channels.add("depth")
-    return RenderSetup(scene, lights, env, renderer, post, channels)
+    return RenderSetup(scene, objects, lights, env, renderer, post, channels)
 
 
 def build_post(cfg: RenderFile) -> PostChain:
@@ -304,187 +303,17 @@ def lights_from_config(
     return Lights(ambient=ambient, directional=directional, point=point, spot=spot)
 
 
-def _transform_matrix(t: TransformConfig) -> torch.Tensor:
-    """(4, 4) model -> world: scale, then rotations about x, y, z (degrees), then translate."""
-    import kornia
-
-    scale = torch.tensor(t.scale if isinstance(t.scale, list) else [t.scale] * 3)
-    angles = torch.deg2rad(torch.tensor(t.rotate_deg))[None]
-    rx, ry, rz = (kornia.geometry.conversions.axis_angle_to_rotation_matrix(
-        torch.eye(3)[i:i + 1] * angles[0, i]) for i in range(3))
-    m = torch.eye(4)
-    m[:3, :3] = (rz @ ry @ rx)[0] * scale
-    m[:3, 3] = torch.tensor(t.translate)
-    return m
-
-
-def build_scene(cfg: RenderFile) -> RenderScene:
-    """Load and transform the config's scene (the main mesh and every entry of
-    ``scene.objects``) into one :class:`RenderScene` with per-face materials and shadow
-    flags (names the file on error)."""
-    parts: list[_Part] = []
-    sc = cfg.scene
-    if sc.mesh is not None:
-        parts.append(_file_part(cfg, sc.mesh, sc.transform, sc.normals, sc.cast_shadows,
-                                sc.receive_shadows))
-    for i, obj in enumerate(sc.objects):
-        if obj.mesh is not None:
-            parts.append(_file_part(cfg, obj.mesh, obj.transform, "auto", obj.cast_shadows,
-                                    obj.receive_shadows))
-        else:
-            parts.append(_primitive_part(obj, obj.name or f"{obj.primitive}{i}",
-                                         sc.max_texture_size))
-    for part in parts:
-        part.materials = [_override(mat, cfg) for mat in part.materials]
-    return _merge(parts)
-
-
-@dataclass
-class _Part:
-    """One object of a config's scene, in world space."""
-
-    positions: torch.Tensor
-    faces: torch.Tensor
-    normals: torch.Tensor | None
-    uvs: torch.Tensor | None
-    tangents: torch.Tensor | None
-    face_material: torch.Tensor
-    materials: list
-    cast: torch.Tensor
-    receive: torch.Tensor
-
-
-def _file_part(cfg: RenderFile, path: str, transform: TransformConfig, normals_mode: str,
-               cast: bool, receive: bool) -> _Part:
-    scene = load_scene(Path(path), max_texture_size=cfg.scene.max_texture_size,
-                       allow_missing_textures=cfg.scene.allow_missing_textures)
-    mesh, face_material, materials = scene.flatten()
-    node_cast, node_receive = scene.face_shadow_flags()
-    if normals_mode == "flat":
-        mesh = flat_mesh(mesh)
-    m = _transform_matrix(transform)
-    positions = mesh.positions @ m[:3, :3].T + m[:3, 3]
-    normals = None
-    if mesh.normals is not None and normals_mode != "smooth":
-        normals = torch.nn.functional.normalize(mesh.normals @ torch.linalg.inv(m[:3, :3]), dim=-1)
-    return _Part(positions, mesh.faces, normals, mesh.uvs, mesh.tangents, face_material,
-                 list(materials), node_cast & cast, node_receive & receive)
-
-
-def _primitive_part(obj: ObjectConfig, name: str, max_texture: int | None) -> _Part:
-    """A plane, box or sphere of ``obj.size`` with its material, in world space."""
-    import trimesh
-
-    s = float(obj.size)
-    if obj.primitive == "plane":
-        h = s / 2
-        positions = torch.tensor([[-h, 0, -h], [h, 0, -h], [h, 0, h], [-h, 0, h]])
-        faces = torch.tensor([[0, 2, 1], [0, 3, 2]])  # counter-clockwise seen from +Y
-        normals = torch.tensor([[0.0, 1.0, 0.0]]).expand(4, 3)
-        uvs = torch.tensor([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
-    else:
-        tm = (trimesh.creation.box(extents=[s, s, s]) if obj.primitive == "box"
-              else trimesh.creation.icosphere(subdivisions=3, radius=s / 2))
-        mesh = Mesh(torch.tensor(tm.vertices, dtype=torch.float32),
-                    torch.tensor(tm.faces, dtype=torch.int64))
-        if obj.primitive == "box":
-            mesh = flat_mesh(mesh)  # sharp edges: one normal per face
-            positions, faces, normals = mesh.positions, mesh.faces, mesh.normals
-            # each face projected along its axis: [0, 1]^2 over the face
-            axis = normals.abs().argmax(-1, keepdim=True)
-            keep = torch.tensor([[1, 2], [0, 2], [0, 1]]).index_select(0, axis.flatten())
-            uvs = torch.gather(positions, 1, keep) / s + 0.5
-        else:
-            positions, faces = mesh.positions, mesh.faces
-            normals = torch.nn.functional.normalize(positions, dim=-1)
-            # latitude-longitude
-            uvs = torch.stack([0.5 + torch.atan2(normals[:, 0], normals[:, 2]) / (2 * math.pi),
-                               0.5 + torch.asin(normals[:, 1].clamp(-1, 1)) / math.pi], -1)
-    m = _transform_matrix(obj.transform)
-    positions = positions.float() @ m[:3, :3].T + m[:3, 3]
-    normals = torch.nn.functional.normalize(normals.float() @ torch.linalg.inv(m[:3, :3]),
-                                            dim=-1)
-    mc = obj.material or ObjectMaterialConfig()
-    rgba = list(mc.base_color) + ([1.0] if len(mc.base_color) == 3 else [])
-    texture = None
-    if mc.base_color_texture is not None:
-        texture = load_texture(Path(mc.base_color_texture), max_size=max_texture)
-    material = Material(name=mc.name or f"object:{name}", base_color_factor=torch.tensor(rgba),
-                        base_color_texture=texture, metallic_factor=mc.metallic,
-                        roughness_factor=mc.roughness, emissive_factor=torch.tensor(mc.emissive),
-                        alpha_mode=mc.alpha_mode, alpha_cutoff=mc.alpha_cutoff,
-                        double_sided=obj.primitive == "plane" or mc.alpha_mode != "OPAQUE")
-    n_faces = faces.shape[0]
-    return _Part(positions, faces, normals, uvs, None,
-                 torch.zeros(n_faces, dtype=torch.int64), [material],
-                 torch.full((n_faces,), obj.cast_shadows), torch.full((n_faces,),
-                                                                      obj.receive_shadows))
-
-
-def _merge(parts: list[_Part]) -> RenderScene:
-    """One RenderScene of all parts (missing normals computed, missing UVs / tangents
-    zero-filled where another part has them)."""
-    if len(parts) == 1 and bool(parts[0].cast.all()) and bool(parts[0].receive.all()):
-        p = parts[0]
-        return RenderScene(p.positions, p.faces, p.normals, p.uvs, p.tangents, p.face_material,
-                           p.materials)
-    any_uv = any(p.uvs is not None for p in parts)
-    any_tan = any(p.tangents is not None for p in parts)
-    pos, faces, nrm, uvs, tan, fmat, mats = [], [], [], [], [], [], []
-    offset = 0
-    for p in parts:
-        n_vert = p.positions.shape[0]
-        pos.append(p.positions)
-        faces.append(p.faces + offset)
-        nrm.append(p.normals if p.normals is not None
-                   else vertex_normals(p.positions, p.faces).reshape(-1, 3))
-        if any_uv:
-            uvs.append(p.uvs if p.uvs is not None else p.positions.new_zeros(n_vert, 2))
-        if any_tan:
-            tan.append(p.tangents if p.tangents is not None else p.positions.new_zeros(n_vert, 4))
-        fmat.append(p.face_material + len(mats))
-        mats += p.materials
-        offset += n_vert
-    cast = torch.cat([p.cast for p in parts])
-    receive = torch.cat([p.receive for p in parts])
-    return RenderScene(torch.cat(pos), torch.cat(faces), torch.cat(nrm),
-                       torch.cat(uvs) if any_uv else None, torch.cat(tan) if any_tan else None,
-                       torch.cat(fmat), mats, cast_shadows=None if bool(cast.all()) else cast,
-                       receive_shadows=None if bool(receive.all()) else receive)
-
-
-def _override(mat: Material | None, cfg: RenderFile) -> Material | None:
-    """Apply the config's material overrides (in order) to one material."""
-    for o in cfg.materials:
-        if o.match != "*" and (mat is None or mat.name != o.match):
-            continue
-        mat = mat if mat is not None else Material()
-        changes = {}
-        if o.base_color is not None:
-            rgba = list(o.base_color) + ([1.0] if len(o.base_color) == 3 else [])
-            changes["base_color_factor"] = torch.tensor(rgba)
-        if o.metallic is not None:
-            changes["metallic_factor"] = o.metallic
-        if o.roughness is not None:
-            changes["roughness_factor"] = o.roughness
-        if o.emissive is not None:
-            changes["emissive_factor"] = torch.tensor(o.emissive)
-        if o.base_color_texture is not None:
-            changes["base_color_texture"] = load_texture(
-                Path(o.base_color_texture), max_size=cfg.scene.max_texture_size)
-        mat = replace(mat, **changes)
-    return mat
-
-
-def build_camera(cam: CameraConfig, positions: torch.Tensor, resolution: tuple[int, int]
-                 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """World -> view and projection matrices ``(1, 4, 4)`` of one camera, framing the
-    scene's bounding sphere where distances or planes are left out.
+def build_camera(cam: CameraConfig, positions: torch.Tensor, resolution: tuple[int, int],
+                 time: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """World -> view and projection matrices ``(1, 4, 4)`` of one camera at ``time``
+    seconds, framing the scene's bounding sphere where distances or planes are left out.
 
     Args:
         cam: the camera's config.
-        positions: ``(V, 3)`` world positions of the scene.
+        positions: ``(V, 3)`` world positions of the scene (at time 0: the framing does not
+            follow moving objects).
         resolution: ``(H, W)``.
+        time: for ``trajectory`` cameras and orbits with ``degrees_per_second``.
     """
     h, w = resolution
     lo, hi = positions.amin(0), positions.amax(0)
@@ -493,12 +322,20 @@ def build_camera(cam: CameraConfig, positions: torch.Tensor, resolution: tuple[i
     if cam.look_at is not None:
         view = camera.look_at(cam.look_at.eye, cam.look_at.target, cam.look_at.up)
         distance = float((torch.tensor(cam.look_at.eye) - torch.tensor(cam.look_at.target)).norm())
+    elif cam.trajectory is not None:
+        keys = cam.trajectory.keys
+        view = look_at_path([k.time for k in keys], [k.eye for k in keys],
+                            [k.target for k in keys], [k.up for k in keys], t=[time],
+                            interpolation=cam.trajectory.interpolation)
+        eye = view.inverse()[0, :3, 3]
+        distance = float((eye - center).norm().clamp(min=radius * 1e-3))
     else:
         o = cam.orbit
         target = o.target if o.target is not None else center.tolist()
         fov = math.radians(cam.fov_deg)
         distance = o.distance or radius / math.sin(min(fov, fov * w / h) / 2) * 1.05
-        view = camera.orbit(o.azimuth_deg, o.elevation_deg, distance, target)
+        view = camera.orbit(o.azimuth_deg + o.degrees_per_second * time, o.elevation_deg,
+                            distance, target)
     near = cam.near or max(distance - 2 * radius, distance * 1e-3, 1e-4)
     far = cam.far or math.inf
     if cam.projection == "orthographic":

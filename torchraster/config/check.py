@@ -7,7 +7,7 @@ from pathlib import Path
 
 import torch
 
-from .schema import ConfigError, RenderFile
+from .schema import FLOW_CHANNELS, MAX_INSTANCES, ConfigError, RenderFile
 from .views import is_mesh_set, mesh_set_problems
 
 
@@ -67,3 +67,42 @@ def check_config(cfg: RenderFile) -> None:
                             "the view direction (or zero); pick another up vector")
     if problems:
         raise ConfigError("invalid render config\n  " + "\n  ".join(problems))
+
+
+#: Channels each export reads.
+EXPORT_NEEDS = {"coco": {"instance"}, "bop": {"instance", "amodal", "depth"}}
+
+
+def dataset_problems(cfg: RenderFile) -> list[str]:
+    """Problems of the dataset sections that need the whole config (``file:line: key:
+    message``): flow channels without a second frame, exports without the channels they
+    read, unknown or repeated categories, more instances than 16-bit ids hold."""
+    problems = []
+    channels = set(cfg.outputs.channels)
+    flow = sorted(FLOW_CHANNELS & channels)
+    if flow and cfg.frames.count < 2:
+        problems.append(f"{cfg.where('outputs', 'channels')}: {', '.join(flow)} "
+                        f"{'needs' if len(flow) == 1 else 'need'} another frame; set "
+                        "frames: {count: 2 or more, fps: ...}")
+    for i, export in enumerate(cfg.outputs.exports):
+        missing = EXPORT_NEEDS.get(export, set()) - channels
+        if missing:
+            problems.append(f"{cfg.where('outputs', 'exports', i)}: {export} needs the "
+                            f"channel(s) {', '.join(sorted(missing))} in outputs.channels")
+    named = [(("scene", "category"), cfg.scene.category)] + [
+        (("scene", "objects", i, "category"), o.category)
+        for i, o in enumerate(cfg.scene.objects)]
+    if cfg.categories is not None:
+        seen: set[str] = set()
+        for i, c in enumerate(cfg.categories):
+            if c in seen:
+                problems.append(f"{cfg.where('categories', i)}: {c!r} is listed twice")
+            seen.add(c)
+        for loc, c in named:
+            if c is not None and c not in seen:
+                problems.append(f"{cfg.where(*loc)}: unknown category {c!r}; expected one of "
+                                f"categories: {cfg.categories}")
+    if len(cfg.scene.objects) + 1 > MAX_INSTANCES:
+        problems.append(f"{cfg.where('scene', 'objects')}: {len(cfg.scene.objects)} objects; "
+                        f"instance ids are 16-bit (at most {MAX_INSTANCES} instances)")
+    return problems

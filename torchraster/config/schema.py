@@ -18,6 +18,7 @@ from __future__ import annotations
 import inspect
 import math
 import random
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -34,6 +35,7 @@ from pydantic import (
     model_validator,
 )
 
+from ..animation import MAX_FRAMES
 from ..anisotropic import MAX_TEXTURE_ANISOTROPY
 from ..background import FITS
 from ..dissolve import MAX_OCTAVES, Dissolve
@@ -180,6 +182,60 @@ class ObjectMaterialConfig(_Strict):
         return self
 
 
+#: Most instances a scene may hold: ``instance`` / ``semantic`` PNGs are 16-bit.
+MAX_INSTANCES: int = 65_535
+Quaternion = Annotated[list[Finite], Field(min_length=4, max_length=4)]
+Scale3 = Annotated[list[Positive], Field(min_length=3, max_length=3)]
+
+
+def _check_key_times(keys: Sequence[Any]) -> None:
+    """Keyframe times strictly increasing (error names both keys)."""
+    for i in range(1, len(keys)):
+        if keys[i].time <= keys[i - 1].time:
+            what = "duplicates" if keys[i].time == keys[i - 1].time else "comes before"
+            raise ValueError(f"keys[{i}].time ({keys[i].time}) {what} keys[{i - 1}].time "
+                             f"({keys[i - 1].time}): keyframes must be in increasing time order")
+
+
+class KeyframeConfig(_Strict):
+    """One key of an object's animation. A component a key leaves out is the object's
+    ``transform`` value."""
+
+    time: NonNeg = Field(description="seconds (frame i is at i / frames.fps)")
+    translate: Vec3 | None = None
+    rotate_deg: Vec3 | None = Field(None, description="Euler angles in degrees, order "
+                                    "`euler_order` of the animation")
+    rotation: Quaternion | None = Field(None, description="unit quaternion [w, x, y, z] "
+                                        "(normalised), instead of rotate_deg")
+    scale: Positive | Scale3 | None = None
+
+    @model_validator(mode="after")
+    def _one_rotation(self) -> KeyframeConfig:
+        if self.rotate_deg is not None and self.rotation is not None:
+            raise ValueError("give 'rotate_deg' (Euler) or 'rotation' (quaternion), not both")
+        if self.rotation is not None and sum(x * x for x in self.rotation) <= 1e-12:
+            raise ValueError("rotation: the zero quaternion is no rotation; use [1, 0, 0, 0]")
+        return self
+
+
+class AnimationConfig(_Strict):
+    """Keyframed motion of an object: at time t its transform is the keys interpolated
+    (translation and scale linearly, rotation by slerp; ``step`` holds each key until the
+    next); before the first key and after the last the end keys hold."""
+
+    interpolation: Literal["linear", "step"] = "linear"
+    euler_order: Annotated[str, Field(pattern=r"^([xyz]{3}|[XYZ]{3})$")] = Field(
+        "xyz", description="order of `rotate_deg`: lower case about the world axes, the first "
+        "letter applied first (xyz = Rz Ry Rx, as `transform.rotate_deg`); upper case about the "
+        "object's own axes")
+    keys: Annotated[list[KeyframeConfig], Field(min_length=1, max_length=100_000)]
+
+    @model_validator(mode="after")
+    def _ordered(self) -> AnimationConfig:
+        _check_key_times(self.keys)
+        return self
+
+
 class ObjectConfig(_Strict):
     """One more object of the scene: a mesh file or a primitive built here (a ground plane
     under a model, a box, a sphere), with its own transform and shadow flags."""
@@ -197,6 +253,12 @@ class ObjectConfig(_Strict):
         "file keeps its own materials")
     cast_shadows: bool = True
     receive_shadows: bool = True
+    category: str | None = Field(None, description="class name for the `semantic` channel "
+                                 "and the exports (one of `categories:` when given)")
+    animation: AnimationConfig | None = Field(None, description="keyframed motion over the "
+                                              "frames (replaces `transform` per key)")
+    keypoints: list[Vec3] | None = Field(None, description="model-space points projected "
+                                         "into every view's record with their visibility")
 
     @model_validator(mode="after")
     def _one_source(self) -> ObjectConfig:
@@ -235,6 +297,10 @@ class SceneConfig(_Strict):
         "(with a warning) instead of failing")
     cast_shadows: bool = Field(True, description="the main mesh is drawn into shadow maps")
     receive_shadows: bool = Field(True, description="the main mesh is darkened by shadows")
+    category: str | None = Field(None, description="class name of the main mesh (each of "
+                                 "its glTF nodes with a mesh is one instance)")
+    animation: AnimationConfig | None = Field(None, description="keyframed motion of the "
+                                              "main mesh")
     objects: list[ObjectConfig] = Field(default_factory=list)
 
     @model_validator(mode="after")
@@ -255,6 +321,7 @@ class OrbitConfig(_Strict):
     elevation_deg: Annotated[float, Field(gt=-90, lt=90)] = 0.0
     distance: Positive | None = None
     target: Vec3 | None = None
+    degrees_per_second: Finite = Field(0.0, description="azimuth turn over time (frames)")
 
 
 class LookAtConfig(_Strict):
@@ -331,6 +398,28 @@ class IntrinsicsConfig(_Strict):
     cy: Finite
 
 
+class CameraKeyConfig(_Strict):
+    """One key of a camera trajectory: at ``time`` the camera is at ``eye`` looking at
+    ``target``."""
+
+    time: NonNeg
+    eye: Vec3
+    target: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+    up: Vec3 = Field(default_factory=lambda: [0.0, 1.0, 0.0])
+
+
+class TrajectoryConfig(_Strict):
+    """A camera moving over the frames: eye, target and up interpolated between keys."""
+
+    interpolation: Literal["linear", "step"] = "linear"
+    keys: Annotated[list[CameraKeyConfig], Field(min_length=1, max_length=100_000)]
+
+    @model_validator(mode="after")
+    def _ordered(self) -> TrajectoryConfig:
+        _check_key_times(self.keys)
+        return self
+
+
 class CameraConfig(_Strict):
     """One view, or with ``random_orbits`` a set of views. At most one of ``orbit`` /
     ``look_at`` / ``random_orbits`` places it (default: orbit)."""
@@ -347,12 +436,15 @@ class CameraConfig(_Strict):
     orbit: OrbitConfig | None = None
     look_at: LookAtConfig | None = None
     random_orbits: RandomOrbitsConfig | None = None
+    trajectory: TrajectoryConfig | None = None
 
     @model_validator(mode="after")
     def _one_placement(self) -> CameraConfig:
-        given = [k for k in ("orbit", "look_at", "random_orbits") if getattr(self, k) is not None]
+        given = [k for k in ("orbit", "look_at", "random_orbits", "trajectory")
+                 if getattr(self, k) is not None]
         if len(given) > 1:
-            raise ValueError(f"give one of 'orbit', 'look_at' or 'random_orbits', not "
+            raise ValueError(f"give one of 'orbit', 'look_at', 'random_orbits' or 'trajectory', "
+                             f"not "
                              f"{' and '.join(repr(k) for k in given)}")
         if not given:
             self.orbit = OrbitConfig()
@@ -817,7 +909,13 @@ class MaterialOverride(_Strict):
 
 
 Channel = Literal["color", "radiance", "alpha", "depth", "position", "normal", "albedo", "metallic",
-                  "roughness", "ao", "emissive", "face_id", "uv"]
+                  "roughness", "ao", "emissive", "face_id", "uv", "instance", "semantic",
+                  "object_coords", "distance", "amodal", "flow_forward", "flow_backward",
+                  "flow_forward_valid", "flow_backward_valid", "motion"]
+#: Channels that need another frame.
+FLOW_CHANNELS = {"flow_forward", "flow_backward", "flow_forward_valid", "flow_backward_valid",
+                 "motion"}
+Export = Literal["coco", "bop", "nerf", "webdataset"]
 
 
 class OutputConfig(_Strict):
@@ -830,6 +928,19 @@ class OutputConfig(_Strict):
 
     channels: list[Channel] = Field(default_factory=lambda: ["color", "depth", "normal"])
     formats: list[Literal["png", "npy", "exr"]] = Field(default_factory=lambda: ["png"])
+    exports: list[Export] = Field(
+        default_factory=list, description="dataset files written next to the manifest after a "
+        "run (`exports/<format>/`): COCO instances (needs `instance`), BOP (needs `instance`, "
+        "`amodal`, `depth`), NeRF transforms.json, WebDataset shards")
+    previews: bool = Field(False, description="also write `instance_preview.png` / "
+                           "`semantic_preview.png`: ids in distinct colours")
+
+
+class FramesConfig(_Strict):
+    """Time: every camera renders ``count`` frames, frame i at time i / ``fps`` seconds."""
+
+    count: Annotated[int, Field(ge=1, le=MAX_FRAMES)] = 1
+    fps: Annotated[float, Field(gt=0, le=10_000, allow_inf_nan=False)] = 24.0
 
 
 class RenderFile(_Strict):
@@ -844,6 +955,10 @@ class RenderFile(_Strict):
     materials: list[MaterialOverride] = Field(default_factory=list)
     post: PostConfig | None = None
     outputs: OutputConfig = Field(default_factory=OutputConfig)
+    categories: list[str] | None = Field(
+        None, description="class names; category id i + 1 is categories[i] (0 = background). "
+        "Without it, ids follow the order in which objects name their category")
+    frames: FramesConfig = Field(default_factory=FramesConfig)
 
     # Set by parse_config: the folder relative paths are resolved against, the source name
     # and the line of every key path (for errors found after validation). Private, so a

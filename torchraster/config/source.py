@@ -18,6 +18,7 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ValidationError
 
+from .check import dataset_problems
 from .lines import UNION_TAGS, key_lines, line_of
 from .schema import (
     AmbientLightConfig,
@@ -168,7 +169,7 @@ def parse_config(text: str | bytes, source: str = "<string>",
             msgs.append(f"{where}: {key}: {_message(err)}")
         raise ConfigError("invalid render config\n  " + "\n  ".join(msgs)) from None
     cfg._base_dir, cfg._source, cfg._lines = base, source, lines
-    problems = duplicate_cameras(cfg)
+    problems = duplicate_cameras(cfg) + dataset_problems(cfg)
     if problems:
         raise ConfigError("invalid render config\n  " + "\n  ".join(problems))
     return cfg
