@@ -29,7 +29,7 @@ from skimage import io as skio
 
 import torchraster as tr
 from torchraster.config import Channel, RenderFile, check_config
-from torchraster.config.schema import FLOW_CHANNELS
+from torchraster.config.schema import FLOW_CHANNELS, DistConfig
 from torchraster.hdr_io import write_hdr
 from torchraster.pipeline import render_config
 
@@ -65,7 +65,8 @@ REFUSED: set[str] = {f"lights.{kind}.shadows.{key}" for kind in ("point", "spot"
                                  "max_distance")}
 
 #: Fields whose base config is expected to fail (the change makes it render).
-BASE_FAILS: dict[str, type[BaseException]] = {"scene.allow_missing_textures": tr.ConfigError}
+BASE_FAILS: dict[str, type[BaseException]] = {"scene.allow_missing_textures": tr.ConfigError,
+                                              "randomize.objects.max_tries": tr.ConfigError}
 
 PBR = {"render": {"shading": "pbr"}}
 SUN = {"type": "directional", "direction": [-0.3, -1.0, -0.2], "intensity": 3.0}
@@ -350,6 +351,81 @@ def _trajectory(**key1: object) -> tuple[dict, dict]:
             {**TWO_FRAMES, "cameras": [{"trajectory": {"keys": [keys[0], {**keys[1], **key1}]}}]})
 
 
+def _merge(base: dict, patch: dict) -> dict:
+    out = copy.deepcopy(base)
+    for key, value in patch.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+#: Fields holding a model whose every field is varied elsewhere: one variation each here.
+#: (A random value, DistConfig, is a leaf too: test_random_values_follow_their_distribution.)
+SHARED_MODELS = {"randomize.lights.shadows": "lights.directional.shadows"}
+
+#: A randomised scene: boxes drawn onto the stage's ground, lit by a sun.
+RZ = {"seed": 1, "objects": {"count": 3, "pool": [{"primitive": "box", "size": 0.4}],
+                             "bounds": [-1.5, -1.5, 1.5, 1.5]}}
+
+
+def _rz(base: dict | None = None, **change: object) -> tuple[dict, dict]:
+    """(base, changed) randomised configs: ``change`` replaces keys of the randomize block
+    (``objects``: of its objects block)."""
+    rz = _merge(RZ, base or {})
+    objects = change.pop("objects", None)
+    changed = _merge(rz, change)
+    if objects is not None:
+        changed["objects"] = _merge(changed["objects"], objects)
+    extra = {**PBR, "lights": [SUN]}
+    if "velocity" in (objects or {}) or "spin_deg_per_s" in (objects or {}):
+        extra.update(TWO_FRAMES)
+    return {**extra, "randomize": rz}, {**extra, "randomize": changed}
+
+
+RANDOM_VARIATIONS = {
+    "randomize.seed": _rz(seed=2),
+    "randomize.scenes": _rz(scenes=2),
+    "randomize.objects.count": _rz(objects={"count": 2}),
+    "randomize.objects.pool.mesh": _rz(objects={"pool": [{"mesh": "pebble.obj"}]}),
+    "randomize.objects.pool.primitive": _rz(objects={"pool": [{"primitive": "sphere",
+                                                               "size": 0.4}]}),
+    "randomize.objects.pool.size": _rz(objects={"pool": [{"primitive": "box", "size": 0.3}]}),
+    "randomize.objects.pool.category": _rz(objects={"pool": [{"primitive": "box", "size": 0.4,
+                                                              "category": "rock"}]}),
+    "randomize.objects.pool.weight": _rz(
+        {"objects": {"pool": [{"primitive": "box", "size": 0.4}, {"primitive": "sphere"}]}},
+        objects={"pool": [{"primitive": "box", "size": 0.4}, {"primitive": "sphere",
+                                                              "weight": 0.0}]}),
+    "randomize.objects.scale": _rz(objects={"scale": {"uniform": [0.5, 0.8]}}),
+    "randomize.objects.bounds": _rz(objects={"bounds": [-1.0, -1.0, 1.0, 1.0]}),
+    "randomize.objects.floor_y": _rz(objects={"floor_y": 0.3}),
+    "randomize.objects.gap": _rz({"objects": {"count": 6}}, objects={"gap": 0.3}),
+    "randomize.objects.max_tries": _rz(
+        {"objects": {"count": 3, "bounds": [-0.7, -0.7, 0.7, 0.7], "max_tries": 1}},
+        objects={"max_tries": 1000}),
+    "randomize.objects.base_color": _rz(objects={"base_color": [1.0, 0.1, 0.1]}),
+    "randomize.objects.roughness": _rz(objects={"roughness": 0.1}),
+    "randomize.objects.metallic": _rz(objects={"metallic": 1.0}),
+    "randomize.objects.textures": _rz(objects={"textures": "textures"}),
+    "randomize.objects.velocity": _rz(objects={"velocity": [0.6, 0.0, 0.0]}),
+    "randomize.objects.spin_deg_per_s": _rz(objects={"spin_deg_per_s": 90.0}),
+    "randomize.lights.count": _rz({"lights": {"count": 1}}, lights={"count": 2}),
+    **{f"randomize.lights.{key}": _rz({"lights": {}}, lights={key: value})
+       for key, value in (("azimuth_deg", 90.0), ("elevation_deg", 80.0), ("intensity", 1.0),
+                          ("color", [1.0, 0.2, 0.2]), ("shadows", {"map_size": 64}))},
+    "randomize.environment.paths": _rz({"environment": {"paths": ["sky.hdr"]}},
+                                       environment={"paths": ["dusk.hdr"]}),
+    **{f"randomize.environment.{key}": _rz({"environment": {"paths": ["sky.hdr"]}},
+                                           environment={"paths": ["sky.hdr"], key: value})
+       for key, value in (("rotation_deg", 90.0), ("intensity", 0.5), ("background", False))},
+    **{f"randomize.camera.{key}": _rz({"camera": {}}, camera={key: value})
+       for key, value in (("azimuth_deg", 60.0), ("elevation_deg", 40.0), ("distance", 5.0),
+                          ("target", [0.2, 0.3, 0.0]), ("fov_deg", 30.0))},
+    "randomize.background_images": _rz(background_images="textures"),
+}
+
 DATASET_VARIATIONS = {
     "frames.count": ({}, {"frames": {"count": 2}}),
     "frames.fps": (_animated("scene")[0], {**_animated("scene")[0],
@@ -529,6 +605,7 @@ VARIATIONS: dict[str, tuple[dict, dict]] = {
     **STYLE_VARIATIONS,
     **FOG_VARIATIONS,
     **DATASET_VARIATIONS,
+    **RANDOM_VARIATIONS,
 }
 
 #: What every variation starts from: a textured ball on a ground plane, all channels.
@@ -559,9 +636,10 @@ def config_fields(model: type[BaseModel] = RenderFile, prefix: str = "") -> set[
         if field.exclude:
             continue
         path = f"{prefix}{name}"
-        subs = _models(field.annotation)
-        if not subs:
+        subs = [m for m in _models(field.annotation) if m is not DistConfig]
+        if not subs or path in SHARED_MODELS:
             out.add(path)
+            continue
         for sub in subs:
             kind = _light_type(sub)
             out |= config_fields(sub, f"{path}.{kind}." if kind and len(subs) > 1
@@ -629,17 +707,13 @@ def assets(tmp_path_factory) -> Path:
     rows[0, :, :8] *= 3.0  # a warm half, so a rotation shows
     write_hdr(root / "sky.hdr", rows)
     write_hdr(root / "dusk.hdr", torch.full((3, 8, 16), 0.4))
+    pebble = trimesh.creation.icosphere(subdivisions=1, radius=0.2)
+    _obj(root / "pebble.obj", [(pebble, "ground")], "stage.mtl")
+    (root / "textures").mkdir()
+    for name in ("a.png", "b.png"):
+        skio.imsave(root / "textures" / name, g.integers(0, 256, (4, 4, 3), dtype=np.uint8),
+                    check_contrast=False)
     return root
-
-
-def _merge(base: dict, patch: dict) -> dict:
-    out = copy.deepcopy(base)
-    for key, value in patch.items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = _merge(out[key], value)
-        else:
-            out[key] = copy.deepcopy(value)
-    return out
 
 
 def _outcome(data: dict, root: Path, cache: dict) -> object:

@@ -400,7 +400,7 @@ def _render_group(group: list[_Job], dc: DatasetConfig, obj: pipeline.ObjectPlan
                 key=job.key, config=dc.name, config_file=dc.path, cfg=obj.config,
                 cfg_hash=cfg_hash, spec=spec, mesh=obj.mesh, result=result, files=files,
                 out_dir=out_dir, timings={"render_s": t1 - t0, "write_s": t2 - t1},
-                rank=world.rank))
+                rank=world.rank, drawn=obj.drawn))
             written += 1
             if verbose:
                 say(f"{prefix}{dc.path} [{spec.folder or spec.camera}]: {result.plan}")

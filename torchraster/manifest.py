@@ -25,6 +25,7 @@ A record (one JSON object per line)::
     lights, environment                          the light set-up as in the config
     frame, time    the frame index and its time in seconds (``frames:``)
     categories     category names: id i + 1 is categories[i], 0 the background
+    randomized     the draws of a randomised scene (``randomize:``), else null
     objects        one entry per instance (torchraster.labels.object_records): instance_id,
                    name, category, category_id, object_to_world (4, 4) at this frame,
                    bbox_visible / bbox_amodal [x0, y0, x1, y1] (pixel edges, COCO's), pixels,
@@ -133,7 +134,8 @@ def camera_matrices(view: torch.Tensor, proj: torch.Tensor, resolution: tuple[in
 
 def view_record(*, key: str, config: str, config_file: str | Path, cfg: RenderFile,
                 cfg_hash: str, spec: ViewSpec, mesh: Path | None, result: ViewResult,
-                files: Iterable[Path], out_dir: Path, timings: dict, rank: int = 0) -> dict:
+                files: Iterable[Path], out_dir: Path, timings: dict, rank: int = 0,
+                drawn: dict | None = None) -> dict:
     """The manifest record of one rendered view (see the module docstring).
 
     Args:
@@ -146,6 +148,7 @@ def view_record(*, key: str, config: str, config_file: str | Path, cfg: RenderFi
         files: the written files; recorded relative to ``out_dir``.
         timings: e.g. ``{"render_s": ..., "write_s": ...}``.
         rank: the process that rendered it.
+        drawn: a randomised scene's draws (recorded as ``randomized``).
     """
     res = cfg.render.size
     record = {"key": key, "config": config, "config_file": str(config_file),
@@ -157,7 +160,7 @@ def view_record(*, key: str, config: str, config_file: str | Path, cfg: RenderFi
     record["environment"] = (cfg.environment.model_dump(mode="json")
                              if cfg.environment is not None else None)
     record.update(frame=result.frame, time=result.time, categories=result.categories,
-                  objects=result.objects)
+                  objects=result.objects, randomized=drawn)
     record["files"] = {p.name: p.relative_to(out_dir).as_posix() for p in files}
     record["timings"] = {k: round(v, 6) for k, v in timings.items()}
     record.update(finished_at=time.time(), rank=rank, host=socket.gethostname())

@@ -43,6 +43,7 @@ from .config import (
     mesh_set,
     object_config,
     object_name,
+    scene_variants,
     view_names,
 )
 from .config import build_scene as build_scene  # re-exported: scripts and examples use it
@@ -122,13 +123,15 @@ class ObjectPlan:
         name: the object's name.
         mesh: its mesh file (None for a scene of ``scene.objects`` only).
         config: the config of this object alone (its mesh, its concrete cameras).
-        views: one :class:`ViewSpec` per camera, in order.
+        views: one :class:`ViewSpec` per camera and frame, in order.
+        drawn: a randomised scene's draws (:class:`~torchraster.config.Variant`), else None.
     """
 
     name: str
     mesh: Path | None
     config: RenderFile = field(repr=False)
     views: list[ViewSpec]
+    drawn: dict | None = field(repr=False, default=None)
 
 
 def plan_objects(cfg: RenderFile, seed: int = 0) -> list[ObjectPlan]:
@@ -140,16 +143,20 @@ def plan_objects(cfg: RenderFile, seed: int = 0) -> list[ObjectPlan]:
         seed: mixed into every view's seed (``RenderDataset(seed=...)``; 0 for the CLI).
     """
     in_set = is_mesh_set(cfg)
+    variants = scene_variants(cfg, seed)
     if in_set:
-        objects = [(e.name, e.path) for e in mesh_set(cfg)]
+        objects = [(e.name, e.path, cfg, None) for e in mesh_set(cfg)]
         several = True
+    elif variants:
+        objects = [(v.name, cfg.scene.mesh, v.config, v.drawn) for v in variants]
+        in_set = several = True  # <variant>/<camera>/...
     else:
-        objects = [(object_name(cfg), cfg.scene.mesh)]
+        objects = [(object_name(cfg), cfg.scene.mesh, cfg, None)]
         several = sum(len(names) for names in view_names(cfg)) > 1
     frames = cfg.frames.count
     plans = []
-    for name, mesh in objects:
-        cams = expand_cameras(cfg, name, seed)
+    for name, mesh, source, drawn in objects:
+        cams = expand_cameras(source, name, seed)
         views = []
         for c in cams:
             base = f"{name}/{c.name}" if in_set else (c.name if several else "")
@@ -157,7 +164,8 @@ def plan_objects(cfg: RenderFile, seed: int = 0) -> list[ObjectPlan]:
                 folder = "/".join(p for p in (base, f"{f:05d}" if frames > 1 else "") if p)
                 views.append(ViewSpec(name, c.name, folder, c.seed, c.camera, f))
         plans.append(ObjectPlan(name, None if mesh is None else Path(mesh),
-                                object_config(cfg, mesh, [c.camera for c in cams]), views))
+                                object_config(source, mesh, [c.camera for c in cams]), views,
+                                drawn))
     return plans
 
 
@@ -487,7 +495,8 @@ def check_output_dir(out_dir: Path) -> None:
 def view_folder(out_dir: Path, cfg: RenderFile, name: str) -> Path:
     """The folder of one view: ``out_dir`` (a config of one view) or ``out_dir/<name>``
     (``name`` from :class:`ViewResult`), checked to stay inside ``out_dir``."""
-    several = is_mesh_set(cfg) or sum(len(names) for names in view_names(cfg)) > 1
+    several = (is_mesh_set(cfg) or cfg.randomize is not None or cfg.frames.count > 1
+               or sum(len(names) for names in view_names(cfg)) > 1)
     folder = out_dir / name if several else out_dir
     root = out_dir.resolve()
     if folder.resolve() != root and root not in folder.resolve().parents:

@@ -101,6 +101,7 @@ from .schema import (
     written,
 )
 from .source import MAX_YAML_NODES, load_config, parse_config
+from .variants import Variant, scene_variants
 from .views import (
     MeshSetEntry,
     PlannedCamera,
@@ -118,7 +119,8 @@ from .views import (
 __all__ = [
     "AmbientLightConfig", "AutoExposureConfig", "BackgroundImageConfig", "BloomConfig",
     "AnimationConfig", "build_camera", "build_dissolve", "build_objects", "FramesConfig",
-    "KeyframeConfig", "SceneObjects", "TrajectoryConfig", "build_environment", "build_fog",
+    "KeyframeConfig", "SceneObjects", "TrajectoryConfig", "Variant", "scene_variants",
+    "build_environment", "build_fog",
     "build_post",
     "build_post_chain", "build_renderer", "build_scene", "build_setup",
     "build_shadow_settings", "build_ssao", "build_ssr", "camera_names", "CameraConfig",

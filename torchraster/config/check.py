@@ -65,6 +65,13 @@ def check_config(cfg: RenderFile) -> None:
                 forward.norm() * up.norm()):
             problems.append(f"{cfg.where('cameras', i, 'look_at', 'up')}: up is parallel to "
                             "the view direction (or zero); pick another up vector")
+    if cfg.randomize is not None and not problems:  # the draws must be usable too
+        from .variants import scene_variants
+
+        try:
+            scene_variants(cfg)
+        except ConfigError as e:
+            problems.append(str(e))
     if problems:
         raise ConfigError("invalid render config\n  " + "\n  ".join(problems))
 

@@ -205,8 +205,13 @@ def build_objects(cfg: RenderFile) -> SceneObjects:
         kp = (torch.tensor(obj.keypoints, dtype=torch.float32) if obj.keypoints is not None
               else None)
         if obj.mesh is not None:
-            instances += _file_instances(cfg, obj.mesh, name, "auto", obj.cast_shadows,
-                                         obj.receive_shadows, entry, obj.category, kp)
+            found = _file_instances(cfg, obj.mesh, name, "auto", obj.cast_shadows,
+                                    obj.receive_shadows, entry, obj.category, kp)
+            if obj.material is not None:
+                for inst in found:
+                    inst.materials = [_object_material(m, obj.material, sc.max_texture_size)
+                                      for m in inst.materials]
+            instances += found
         else:
             instances.append(_primitive_instance(obj, name, sc.max_texture_size, entry, kp))
     if len(instances) > MAX_INSTANCES:
@@ -356,6 +361,27 @@ def _assemble(cfg: RenderFile, instances: list[_Instance], rests: list[torch.Ten
         receive_shadows=None if bool(receive.all()) else receive, face_object=face_object,
         object_category=category, object_coords=torch.cat(nocs))
     return objects
+
+
+def _object_material(mat: Material, mc: ObjectMaterialConfig,
+                     max_texture: int | None) -> Material:
+    """A mesh's material with the fields an object's ``material:`` sets replaced (a new
+    Material: other instances of the file keep theirs)."""
+    given = mc.model_fields_set
+    changes: dict = {}
+    if "base_color" in given:
+        rgba = list(mc.base_color) + ([1.0] if len(mc.base_color) == 3 else [])
+        changes["base_color_factor"] = torch.tensor(rgba)
+    if "metallic" in given:
+        changes["metallic_factor"] = mc.metallic
+    if "roughness" in given:
+        changes["roughness_factor"] = mc.roughness
+    if "emissive" in given:
+        changes["emissive_factor"] = torch.tensor(mc.emissive)
+    if "base_color_texture" in given and mc.base_color_texture is not None:
+        changes["base_color_texture"] = load_texture(Path(mc.base_color_texture),
+                                                     max_size=max_texture)
+    return replace(mat, **changes)
 
 
 def _override(mat: Material | None, cfg: RenderFile) -> Material | None:

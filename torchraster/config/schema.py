@@ -249,8 +249,8 @@ class ObjectConfig(_Strict):
     size: Positive = 1.0
     transform: TransformConfig = Field(default_factory=TransformConfig)
     material: ObjectMaterialConfig | None = Field(
-        None, description="for primitives (default: light grey, rough dielectric); a mesh "
-        "file keeps its own materials")
+        None, description="for primitives (default: light grey, rough dielectric); for a mesh "
+        "file, the fields given replace those of every material of this object")
     cast_shadows: bool = True
     receive_shadows: bool = True
     category: str | None = Field(None, description="class name for the `semantic` channel "
@@ -265,9 +265,11 @@ class ObjectConfig(_Strict):
         if (self.mesh is None) == (self.primitive is None):
             raise ValueError("give exactly one of 'mesh' (a file) or 'primitive' "
                              "(plane, box, sphere)")
-        if self.mesh is not None and self.material is not None:
-            raise ValueError("'material' is for primitives; a mesh file keeps its own "
-                             "materials (use the top-level 'materials:' overrides)")
+        if self.mesh is not None and self.material is not None and (
+                {"name", "alpha_mode", "alpha_cutoff"} & self.material.model_fields_set):
+            raise ValueError("material: a mesh file keeps its materials' names and alpha "
+                             "modes; only base_color, metallic, roughness, emissive and "
+                             "base_color_texture override them")
         return self
 
 
@@ -936,6 +938,133 @@ class OutputConfig(_Strict):
                            "`semantic_preview.png`: ids in distinct colours")
 
 
+class DistConfig(_Strict):
+    """A random value: exactly one of ``uniform: [low, high]``, ``loguniform: [low, high]``
+    (low > 0), ``normal: [mean, std]`` (each bound a number or a list per component) or
+    ``choice: [options]`` (with optional ``weights``). Drawn per scene variant from the seed
+    of ``randomize`` and recorded in the manifest."""
+
+    uniform: Annotated[list[Finite | list[Finite]], Field(min_length=2, max_length=2)] | None = None
+    loguniform: Annotated[list[Finite | list[Finite]], Field(min_length=2,
+                                                             max_length=2)] | None = None
+    normal: Annotated[list[Finite | list[Finite]], Field(min_length=2, max_length=2)] | None = None
+    choice: Annotated[list[Any], Field(min_length=1)] | None = None
+    weights: list[NonNeg] | None = None
+
+    @model_validator(mode="after")
+    def _one(self) -> DistConfig:
+        given = [k for k in ("uniform", "loguniform", "normal", "choice")
+                 if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise ValueError("give exactly one of uniform, loguniform, normal or choice, got "
+                             f"{given or 'none'}")
+        if self.weights is not None and self.choice is None:
+            raise ValueError("weights go with choice")
+        if self.weights is not None and len(self.weights) != len(self.choice):
+            raise ValueError(f"weights: expected {len(self.choice)} (one per choice), got "
+                             f"{len(self.weights)}")
+        return self
+
+
+#: A constant or a distribution.
+Random = Finite | list[Finite] | DistConfig
+RandomCount = Annotated[int, Field(ge=0, le=MAX_INSTANCES)] | DistConfig
+
+
+class PoolEntryConfig(_Strict):
+    """One kind of object random scenes draw from: a mesh file or a primitive."""
+
+    mesh: FilePath | None = None
+    primitive: Literal["box", "sphere"] | None = None
+    size: Positive = 1.0
+    category: str | None = None
+    weight: NonNeg = Field(1.0, description="relative chance of being drawn")
+
+    @model_validator(mode="after")
+    def _one_source(self) -> PoolEntryConfig:
+        if (self.mesh is None) == (self.primitive is None):
+            raise ValueError("give exactly one of 'mesh' (a file) or 'primitive' (box, sphere)")
+        return self
+
+
+class RandomObjectsConfig(_Strict):
+    """``count`` objects drawn from ``pool``, placed on the floor ``y = floor_y`` inside
+    ``bounds`` without overlapping (bounding circles), resting on it, with a random yaw; each
+    drawn value is recorded. ``velocity`` (m/s) and ``spin_deg_per_s`` (about +y) move them
+    over the frames (straight lines: no collisions)."""
+
+    count: RandomCount = 8
+    pool: Annotated[list[PoolEntryConfig], Field(min_length=1)]
+    scale: Random = 1.0
+    bounds: Annotated[list[Finite], Field(min_length=4, max_length=4)] = Field(
+        default_factory=lambda: [-2.0, -2.0, 2.0, 2.0], description="[x0, z0, x1, z1]")
+    floor_y: Finite = 0.0
+    gap: NonNeg = 0.0
+    max_tries: Annotated[int, Field(ge=1, le=1_000_000)] = 1000
+    base_color: Random | None = Field(None, description="RGB in [0, 1] (clipped)")
+    roughness: Random | None = None
+    metallic: Random | None = None
+    textures: FilePath | None = Field(None, description="a folder of images: each object's "
+                                      "base colour texture drawn from it")
+    velocity: Random | None = Field(None, description="[vx, vy, vz] m/s")
+    spin_deg_per_s: Random | None = None
+
+    @field_validator("bounds")
+    @classmethod
+    def _ordered_bounds(cls, v: list[float]) -> list[float]:
+        if v[0] >= v[2] or v[1] >= v[3]:
+            raise ValueError(f"expected [x0, z0, x1, z1] with x0 < x1 and z0 < z1, got {v}")
+        return v
+
+
+class RandomLightsConfig(_Strict):
+    """``count`` directional lights from random directions (``azimuth_deg`` about +y from
+    +z, ``elevation_deg`` above the horizon) added to ``lights:``."""
+
+    count: RandomCount = 1
+    azimuth_deg: Random = Field(default_factory=lambda: DistConfig(uniform=[0.0, 360.0]))
+    elevation_deg: Random = Field(default_factory=lambda: DistConfig(uniform=[20.0, 70.0]))
+    intensity: Random = 3.0
+    color: Random = Field(default_factory=lambda: [1.0, 1.0, 1.0])
+    shadows: ShadowConfig | None = None
+
+
+class RandomEnvironmentConfig(_Strict):
+    """An environment map drawn from ``paths`` (files, or folders of .hdr / .exr)."""
+
+    paths: Annotated[list[FilePath], Field(min_length=1)]
+    rotation_deg: Random = Field(default_factory=lambda: DistConfig(uniform=[0.0, 360.0]))
+    intensity: Random = 1.0
+    background: bool = True
+
+
+class RandomCameraConfig(_Strict):
+    """Random values replacing the ``orbit`` fields of every orbit camera."""
+
+    azimuth_deg: Random | None = None
+    elevation_deg: Random | None = None
+    distance: Random | None = None
+    target: Random | None = None
+    fov_deg: Random | None = None
+
+
+class RandomizeConfig(_Strict):
+    """Domain randomisation: ``scenes`` variants of the config, each with its own draws
+    (objects, lights, environment, cameras, background image) from ``seed``. A variant is an
+    object of the config: views are variants x cameras x frames, written to
+    ``<variant>/<camera>/...``; the same seed gives the same dataset on any number of
+    ranks, and each record holds its variant's draws."""
+
+    seed: Annotated[int, Field(ge=0)] = 0
+    scenes: Annotated[int, Field(ge=1, le=MAX_RANDOM_VIEWS)] = 1
+    objects: RandomObjectsConfig | None = None
+    lights: RandomLightsConfig | None = None
+    environment: RandomEnvironmentConfig | None = None
+    camera: RandomCameraConfig | None = None
+    background_images: FilePath | None = Field(None, description="a folder of images: the "
+                                               "background image drawn from it")
+
+
 class FramesConfig(_Strict):
     """Time: every camera renders ``count`` frames, frame i at time i / ``fps`` seconds."""
 
@@ -959,6 +1088,7 @@ class RenderFile(_Strict):
         None, description="class names; category id i + 1 is categories[i] (0 = background). "
         "Without it, ids follow the order in which objects name their category")
     frames: FramesConfig = Field(default_factory=FramesConfig)
+    randomize: RandomizeConfig | None = None
 
     # Set by parse_config: the folder relative paths are resolved against, the source name
     # and the line of every key path (for errors found after validation). Private, so a
