@@ -109,6 +109,17 @@ def dataset_problems(cfg: RenderFile) -> list[str]:
             if c is not None and c not in seen:
                 problems.append(f"{cfg.where(*loc)}: unknown category {c!r}; expected one of "
                                 f"categories: {cfg.categories}")
+    if "bop" in cfg.outputs.exports:  # BOP's obj_id is the category id
+        pool = cfg.randomize.objects.pool if (cfg.randomize is not None
+                                              and cfg.randomize.objects is not None) else []
+        unnamed = ([("scene", "mesh")] if cfg.scene.mesh is not None and
+                   cfg.scene.category is None else []) + [
+            ("scene", "objects", i) for i, o in enumerate(cfg.scene.objects)
+            if o.category is None] + [
+            ("randomize", "objects", "pool", i) for i, o in enumerate(pool) if o.category is None]
+        for loc in unnamed:
+            problems.append(f"{cfg.where(*loc)}: the bop export numbers objects by category "
+                            "(obj_id): give this object a category")
     if len(cfg.scene.objects) + 1 > MAX_INSTANCES:
         problems.append(f"{cfg.where('scene', 'objects')}: {len(cfg.scene.objects)} objects; "
                         f"instance ids are 16-bit (at most {MAX_INSTANCES} instances)")

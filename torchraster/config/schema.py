@@ -507,6 +507,10 @@ class FogConfig(_Strict):
         None, description="distance (m) of the background; null = infinitely far")
     seed: Annotated[int, Field(ge=0)] = Field(default_of(Fog, "seed"),
                                               description="offset of the jitter pattern")
+    light_transmittance: bool = Field(
+        default_of(Fog, "light_transmittance"), description="dim each light by the fog "
+        "between it and the lit point (a sun in homogeneous fog or below the horizon is "
+        "absorbed); false: only the view ray is attenuated")
 
 
 class DissolveConfig(_Strict):
@@ -1104,7 +1108,9 @@ class RenderFile(_Strict):
 
     @model_validator(mode="after")
     def _pbr_needs_light(self) -> RenderFile:
-        lit = bool(self.lights) or self.environment is not None
+        rz = self.randomize
+        drawn = rz is not None and (rz.lights is not None or rz.environment is not None)
+        lit = bool(self.lights) or self.environment is not None or drawn
         if self.render.shading is None:
             self.render.shading = "toon" if self.render.toon is not None else (
                 "pbr" if lit else "headlight")
@@ -1112,8 +1118,7 @@ class RenderFile(_Strict):
             raise ValueError(f"render.shading {self.render.shading!r} ignores 'lights:'; remove "
                              "them, or use shading: pbr (the default when lights are given) or "
                              "another lit model (blinn_phong, half_lambert, toon)")
-        if (self.render.shading in LIT_MODELS and not self.lights
-                and self.environment is None):
+        if self.render.shading in LIT_MODELS and not lit:
             raise ValueError(f"render.shading {self.render.shading!r} needs light: add a "
                              "'lights:' entry or an 'environment:', or use shading: "
                              "headlight / unlit")
