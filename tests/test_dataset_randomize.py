@@ -179,3 +179,22 @@ def test_one_and_two_ranks_write_identical_datasets(tmp_path):
     one, two = files(tmp_path / "out1"), files(tmp_path / "out2")
     assert one.keys() == two.keys() and len(one) > 0
     assert all(one[k] == two[k] for k in one)
+
+
+def test_render_dataset_items_equal_the_command_line_files(tmp_path):
+    """RenderDataset renders the same (scene, camera, frame) views as torchraster render:
+    the same instance ids and flow, item by item."""
+    from torchraster.data import RenderDataset
+
+    text = CONFIG.replace("scenes: 3", "scenes: 1")
+    (tmp_path / "r.yaml").write_text(text)
+    assert main(["render", str(tmp_path / "r.yaml"), "--out", str(tmp_path / "out")]) == 0
+    ds = RenderDataset(tmp_path / "r.yaml", channels=["instance", "flow_forward"])
+    assert ds.num_views == 2
+    for i in range(ds.num_views):
+        item = ds[i]
+        folder = tmp_path / "out" / "r" / "scene_0000" / "cam" / f"{item['frame']:05d}"
+        assert item["frame"] == i and item["time"] == pytest.approx(i / 4)
+        assert np.array_equal(item["instance"].numpy().astype(np.int32),
+                              np.load(folder / "instance.npy"))
+        assert np.array_equal(item["flow_forward"].numpy(), np.load(folder / "flow_forward.npy"))

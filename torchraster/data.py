@@ -57,8 +57,11 @@ class RenderDataset(IterableDataset):
         ``normal`` ``(3, H, W)`` world-space unit normals; any extra ``channels``
         ``(C, H, W)``; ``view`` ``(4, 4)`` world -> view and ``proj`` ``(4, 4)`` (OpenGL,
         the renderer's); ``K`` ``(3, 3)`` OpenCV intrinsics (NaN for orthographic) and
-        ``world_to_camera`` ``(4, 4)`` OpenCV extrinsics; ``seed``, ``index`` (ints);
-        ``object``, ``camera`` (names). Tensors are float32 on ``device``.
+        ``world_to_camera`` ``(4, 4)`` OpenCV extrinsics; ``seed``, ``index``, ``frame``
+        (ints), ``time`` (seconds); label channels (``instance``, ``flow_forward``, ...) as
+        ``channels`` (``amodal`` has one plane per object: batch it with
+        ``batch_size=1`` or a custom collate when scenes differ in object count);
+        ``object``, ``camera`` (names). Tensors are float32 on ``device`` (ids int64).
     """
 
     def __init__(self, config: str | Path | RenderFile, *, seed: int = 0,
@@ -133,7 +136,8 @@ class RenderDataset(IterableDataset):
             self._cache = (oi, view_renderer(obj.config, self.device))
         render = self._cache[1]
         spec = obj.views[vi]
-        result = seeded_call(spec.seed, lambda: render(spec.camera_config, spec.camera))
+        result = seeded_call(spec.seed, lambda: render(spec.camera_config, spec.camera,
+                                                        spec.frame))
         item = {("image" if k == "color" else k): v for k, v in result.images.items()}
         mats = camera_matrices(result.view, result.proj, obj.config.render.size)
         k = mats["opencv"]["K"]
@@ -141,7 +145,8 @@ class RenderDataset(IterableDataset):
             view=result.view.float(), proj=result.proj.float(),
             K=torch.tensor(k) if k is not None else torch.full((3, 3), math.nan),
             world_to_camera=torch.tensor(mats["opencv"]["world_to_camera"]),
-            seed=spec.seed, index=index, object=spec.object, camera=spec.camera)
+            seed=spec.seed, index=index, object=spec.object, camera=spec.camera,
+            frame=spec.frame, time=result.time)
         return item
 
 
