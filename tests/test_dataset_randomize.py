@@ -198,3 +198,16 @@ def test_render_dataset_items_equal_the_command_line_files(tmp_path):
         assert np.array_equal(item["instance"].numpy().astype(np.int32),
                               np.load(folder / "instance.npy"))
         assert np.array_equal(item["flow_forward"].numpy(), np.load(folder / "flow_forward.npy"))
+
+
+def test_a_folder_with_a_non_image_is_an_error_naming_it(tmp_path):
+    from skimage import io as skio
+
+    (tmp_path / "tex").mkdir()
+    skio.imsave(tmp_path / "tex" / "a.png", np.zeros((4, 4, 3), np.uint8), check_contrast=False)
+    (tmp_path / "tex" / "notes.txt").write_text("not an image")
+    text = CONFIG.replace("    spin_deg_per_s:", "    textures: tex\n    spin_deg_per_s:")
+    cfg = _cfg(text, tmp_path)
+    with pytest.raises(tr.ConfigError, match=r"r\.yaml:\d+: randomize\.objects\.textures: .*"
+                       r"notes\.txt"):
+        tr.config.check_config(cfg)

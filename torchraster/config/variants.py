@@ -172,8 +172,9 @@ def _variant(cfg: RenderFile, seed: int, index: int) -> Variant:
 
 
 def _folder(cfg: RenderFile, loc: tuple, folder: str, suffixes: tuple = ()) -> list[Path]:
-    try:
-        return files_in(folder, suffixes) if suffixes else files_in(folder)
+    try:  # strict: a file that is not an image in an image folder is a mistake, not noise
+        return (files_in(folder, suffixes, strict=True) if suffixes
+                else files_in(folder, strict=True))
     except (OSError, ValueError) as e:
         raise ConfigError(f"{cfg.where(*loc)}: {e}") from None
 
