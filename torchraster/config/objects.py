@@ -155,6 +155,8 @@ class SceneObjects:
 
     def positions_at(self, t: float) -> torch.Tensor:
         """``(V, 3)`` world positions at time ``t`` (the other frames of flow)."""
+        if not self.animated:
+            return self.scene.positions
         return self._posed(t, positions_only=True)["positions"]
 
     def _posed(self, t: float, positions_only: bool = False) -> dict:
