@@ -149,3 +149,20 @@ def test_object_records_json_ready():
     assert min(u) == pytest.approx(15.5 - 40 * 0.5 / 3.5)
     assert a["keypoints"]["visible"] == [True] and "keypoints" not in b
     assert not math.isnan(a["visible_fraction"])
+
+
+def test_depth_slope_is_the_smaller_one_sided_step():
+    d = torch.tensor([[1.0, 1.1, 1.2, 0.0],
+                      [1.0, 1.1, 5.0, 0.0]], dtype=torch.float64)
+    s = labels.depth_slope(d)
+    # (0, 1): x steps 0.1 / 0.1 -> 0.1; y step 0.0 -> total 0.1
+    assert s[0, 1] == pytest.approx(0.1)
+    # (1, 2) sits on a silhouette: its x neighbours differ by 3.9 and (empty) -> 3.9; y 3.8
+    assert s[1, 2] == pytest.approx(3.9 + 3.8)
+    assert s[0, 3] == 0 and s[1, 3] == 0  # empty pixels
+    # the test forgives a point half a pixel along a slanted surface, not one behind it
+    inst = torch.ones(2, 4, dtype=torch.int64)
+    pix = torch.tensor([[1.4, 0.0], [1.0, 0.0]], dtype=torch.float64)
+    z = torch.tensor([1.14, 1.5], dtype=torch.float64)
+    seen = labels.keypoint_visibility(pix, z, 1, inst, d)
+    assert seen.tolist() == [True, False]

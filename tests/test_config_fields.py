@@ -50,6 +50,8 @@ METADATA: dict[str, str] = {
     "outputs.exports": "dataset files made from the rendered views after the run "
                        "(tests/test_dataset_labels.py checks them)",
     "outputs.previews": "extra PNGs of the same ids in colours (tests/test_dataset_labels.py)",
+    "outputs.track_points": "query points of the tracks export, made from the rendered files "
+                            "(tests/test_dataset_randomize.py)",
     "scene.objects.keypoints": "projected into the manifest records, not drawn "
                                "(tests/test_dataset_labels.py)",
 }
@@ -277,6 +279,7 @@ FOG_VARIATIONS = {
     "render.fog.blur": _fog(blur=2.0),
     "render.fog.max_distance": _fog(max_distance=2.0),
     "render.fog.seed": _fog(seed=3),
+    "render.fog.light_transmittance": _fog(light_transmittance=False),
 }
 
 

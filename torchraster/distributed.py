@@ -342,8 +342,11 @@ def write_exports(out_dir: Path, configs: list[DatasetConfig],
     reported and the others are written). Returns the written paths."""
     from . import export
 
+    points = next((dc.cfg.outputs.track_points for dc in configs
+                   if "tracks" in dc.cfg.outputs.exports), 256)
     writers = {"coco": export.write_coco, "bop": export.write_bop, "nerf": export.write_nerf,
-               "webdataset": export.write_webdataset}
+               "webdataset": export.write_webdataset,
+               "tracks": lambda out, recs: export.write_tracks(out, recs, n_points=points)}
     wanted: dict[str, set[str]] = {}
     for dc in configs:
         for fmt in dc.cfg.outputs.exports:

@@ -143,13 +143,34 @@ def project(points_world: torch.Tensor, world_to_camera: torch.Tensor,
     return cam, pixels
 
 
+def depth_slope(depth: torch.Tensor) -> torch.Tensor:
+    """``(H, W)`` how much linear depth changes per pixel step: the sum over x and y of the
+    smaller one-sided difference (so a silhouette's far side does not count; inf where both
+    neighbours are empty or missing, 0 for an empty pixel)."""
+    d = depth.double()
+    inf = torch.full_like(d, torch.inf)
+
+    def one_sided(dim: int) -> torch.Tensor:
+        n = d.shape[dim]
+        fwd, bwd = inf.clone(), inf.clone()
+        a, b = d.narrow(dim, 1, n - 1), d.narrow(dim, 0, n - 1)
+        diff = torch.where((a > 0) & (b > 0), (a - b).abs(), torch.inf)
+        fwd.narrow(dim, 0, n - 1).copy_(diff)
+        bwd.narrow(dim, 1, n - 1).copy_(diff)
+        return torch.minimum(fwd, bwd)
+
+    return torch.where(d > 0, one_sided(0) + one_sided(1), 0.0)
+
+
 def keypoint_visibility(pixels: torch.Tensor, camera_z: torch.Tensor, instance_id: int,
                         instance: torch.Tensor, depth: torch.Tensor | None,
-                        rel_tol: float = 1e-2) -> torch.Tensor:
-    """Whether projected keypoints of one object are seen: in front of the camera, inside
-    the image, the pixel they fall in shows that object, and (with ``depth``) the visible
-    surface there is within ``rel_tol`` of the keypoint's depth (a keypoint on the object's
-    hidden side fails this).
+                        rel_tol: float = 1e-3, slope_px: float = 0.75) -> torch.Tensor:
+    """Whether projected points of one object are seen: in front of the camera, inside the
+    image, the pixel they fall in shows that object, and (with ``depth``) the point is not
+    behind the visible surface there: ``z <= d + rel_tol z + slope_px * slope`` with
+    ``slope`` of :func:`depth_slope` (the point lies up to half a pixel from the pixel
+    centre on each axis; 0.75 allows for perspective and creases, as the flow's validity
+    test in :mod:`torchraster.motion`). A keypoint on the object's hidden side fails this.
 
     Args:
         pixels: ``(K, 2)`` OpenCV pixels; camera_z: ``(K,)`` depth along the view axis.
@@ -164,7 +185,9 @@ def keypoint_visibility(pixels: torch.Tensor, camera_z: torch.Tensor, instance_i
     c = col.clamp(0, w - 1).nan_to_num(0).long()
     seen = inside & (instance[r, c] == instance_id)
     if depth is not None:
-        seen = seen & ((depth[r, c] - camera_z).abs() <= rel_tol * camera_z.abs())
+        slope = depth_slope(depth)[r, c].to(camera_z)
+        tol = rel_tol * camera_z.abs() + slope_px * slope
+        seen = seen & (camera_z <= depth[r, c].to(camera_z) + tol)
     return seen
 
 
@@ -239,5 +262,5 @@ def object_records(*, instance: torch.Tensor, object_to_world: torch.Tensor,
     return out
 
 
-__all__ = ["CORNER_SIGNS", "box_corners", "instance_boxes", "keypoint_visibility",
+__all__ = ["CORNER_SIGNS", "box_corners", "depth_slope", "instance_boxes", "keypoint_visibility",
            "mask_boxes", "object_records", "project"]

@@ -77,7 +77,10 @@ def check_config(cfg: RenderFile) -> None:
 
 
 #: Channels each export reads.
-EXPORT_NEEDS = {"coco": {"instance"}, "bop": {"instance", "amodal", "depth"}}
+EXPORT_NEEDS = {"coco": {"instance"}, "bop": {"instance", "amodal", "depth"},
+                "tracks": {"instance", "object_coords", "depth"}}
+#: Exports that read float channels from npy files.
+EXPORT_NEEDS_NPY = {"bop", "tracks"}
 
 
 def dataset_problems(cfg: RenderFile) -> list[str]:
@@ -96,6 +99,9 @@ def dataset_problems(cfg: RenderFile) -> list[str]:
         if missing:
             problems.append(f"{cfg.where('outputs', 'exports', i)}: {export} needs the "
                             f"channel(s) {', '.join(sorted(missing))} in outputs.channels")
+        if export in EXPORT_NEEDS_NPY and "npy" not in cfg.outputs.formats:
+            problems.append(f"{cfg.where('outputs', 'exports', i)}: {export} reads npy files: "
+                            "add npy to outputs.formats")
     named = [(("scene", "category"), cfg.scene.category)] + [
         (("scene", "objects", i, "category"), o.category)
         for i, o in enumerate(cfg.scene.objects)]

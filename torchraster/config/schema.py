@@ -51,7 +51,13 @@ from ..shading.lights import (
     DEFAULT_OUTER_CONE_ANGLE,
 )
 from ..shading.models import model_options
-from ..shading.shadows import FILTERS, PATTERNS, ShadowSettings
+from ..shading.shadows import (
+    FILTERS,
+    PATTERNS,
+    SHADOW_BOUNDS,
+    SHADOW_INT_FIELDS,
+    ShadowSettings,
+)
 from ..shading.volumetric import MAX_ANISOTROPY, MAX_DENSITY, Fog
 from .lines import line_of
 
@@ -630,6 +636,13 @@ def _shadow_default(name: str) -> Any:
     return default_of(ShadowSettings, name)
 
 
+def _shadow_bounds(name: str) -> Any:
+    """``Field(ge=, le=)`` of a ShadowSettings field: the bounds ShadowSettings checks
+    (counts strict: ``true`` is not 1)."""
+    lo, hi = SHADOW_BOUNDS[name]
+    return Field(ge=lo, le=hi, strict=True) if name in SHADOW_INT_FIELDS else Field(ge=lo, le=hi)
+
+
 #: Shadow fields that only some filters read.
 _FILTER_USES = {
     "hard": set(),
@@ -649,35 +662,39 @@ class ShadowConfig(_Strict):
     Sizes and biases are in shadow-map texels; see docs/design.md, "Shadows"."""
 
     enabled: bool = True
-    map_size: Annotated[int, Field(ge=8, le=8192)] = _shadow_default("map_size")
+    map_size: Annotated[int, _shadow_bounds("map_size")] = _shadow_default("map_size")
     filter: Literal[FILTERS] = Field(  # type: ignore[valid-type]
         _shadow_default("filter"), description="hard (1 tap), pcf, pcss (contact-hardening "
         "penumbra from light_size) or vsm (variance shadow maps)")
-    pcf_radius: Annotated[float, Field(ge=0, le=64)] = _shadow_default("pcf_radius")
-    pcf_taps: Annotated[int, Field(ge=1, le=256)] = _shadow_default("pcf_taps")
+    pcf_radius: Annotated[float, _shadow_bounds("pcf_radius")] = _shadow_default("pcf_radius")
+    pcf_taps: Annotated[int, _shadow_bounds("pcf_taps")] = _shadow_default("pcf_taps")
     pcf_pattern: Literal[PATTERNS] = _shadow_default("pcf_pattern")  # type: ignore[valid-type]
-    bias: Annotated[float, Field(ge=0, le=1000)] = Field(
+    bias: Annotated[float, _shadow_bounds("bias")] = Field(
         _shadow_default("bias"), description="constant depth bias (texels)")
-    slope_bias: Annotated[float, Field(ge=0, le=1000)] = Field(
+    slope_bias: Annotated[float, _shadow_bounds("slope_bias")] = Field(
         _shadow_default("slope_bias"), description="slope-scaled depth bias (texels)")
-    normal_bias: Annotated[float, Field(ge=0, le=1000)] = Field(
+    normal_bias: Annotated[float, _shadow_bounds("normal_bias")] = Field(
         _shadow_default("normal_bias"), description="normal offset of receivers (texels)")
-    intensity: Annotated[float, Field(ge=0, le=1)] = Field(
+    intensity: Annotated[float, _shadow_bounds("intensity")] = Field(
         _shadow_default("intensity"), description="0 = no darkening, 1 = full")
-    cascades: Annotated[int, Field(ge=1, le=4)] = Field(
+    cascades: Annotated[int, _shadow_bounds("cascades")] = Field(
         _shadow_default("cascades"), description="cascaded maps (directional lights only)")
-    split_lambda: Annotated[float, Field(ge=0, le=1)] = _shadow_default("split_lambda")
-    cascade_blend: Annotated[float, Field(ge=0, le=0.5)] = _shadow_default("cascade_blend")
+    split_lambda: Annotated[float, _shadow_bounds("split_lambda")] = (
+        _shadow_default("split_lambda"))
+    cascade_blend: Annotated[float, _shadow_bounds("cascade_blend")] = (
+        _shadow_default("cascade_blend"))
     max_distance: Positive | None = Field(
         _shadow_default("max_distance"), description="directional: cascades end at this "
         "camera depth (m); default the farthest scene point")
-    light_size: Annotated[float, Field(ge=0, le=1e6)] = Field(
+    light_size: Annotated[float, _shadow_bounds("light_size")] = Field(
         _shadow_default("light_size"), description="pcss: radius (m) of point / spot lights, "
         "angular diameter (degrees) of directional lights")
-    max_penumbra: Annotated[float, Field(ge=0.5, le=64)] = _shadow_default("max_penumbra")
-    vsm_blur: Annotated[float, Field(ge=0, le=64)] = _shadow_default("vsm_blur")
-    vsm_bleed: Annotated[float, Field(ge=0, le=0.99)] = _shadow_default("vsm_bleed")
-    vsm_min_variance: Annotated[float, Field(ge=0, le=1)] = _shadow_default("vsm_min_variance")
+    max_penumbra: Annotated[float, _shadow_bounds("max_penumbra")] = (
+        _shadow_default("max_penumbra"))
+    vsm_blur: Annotated[float, _shadow_bounds("vsm_blur")] = _shadow_default("vsm_blur")
+    vsm_bleed: Annotated[float, _shadow_bounds("vsm_bleed")] = _shadow_default("vsm_bleed")
+    vsm_min_variance: Annotated[float, _shadow_bounds("vsm_min_variance")] = (
+        _shadow_default("vsm_min_variance"))
 
     @model_validator(mode="after")
     def _used_by_filter(self) -> ShadowConfig:
@@ -921,7 +938,7 @@ Channel = Literal["color", "radiance", "alpha", "depth", "position", "normal", "
 #: Channels that need another frame.
 FLOW_CHANNELS = {"flow_forward", "flow_backward", "flow_forward_valid", "flow_backward_valid",
                  "motion"}
-Export = Literal["coco", "bop", "nerf", "webdataset"]
+Export = Literal["coco", "bop", "nerf", "webdataset", "tracks"]
 
 
 class OutputConfig(_Strict):
@@ -937,9 +954,13 @@ class OutputConfig(_Strict):
     exports: list[Export] = Field(
         default_factory=list, description="dataset files written next to the manifest after a "
         "run (`exports/<format>/`): COCO instances (needs `instance`), BOP (needs `instance`, "
-        "`amodal`, `depth`), NeRF transforms.json, WebDataset shards")
+        "`amodal`, `depth`), NeRF transforms.json, WebDataset shards, point tracks (needs "
+        "`instance`, `object_coords`, `depth` as npy)")
     previews: bool = Field(False, description="also write `instance_preview.png` / "
                            "`semantic_preview.png`: ids in distinct colours")
+    track_points: Annotated[int, Field(ge=1, le=1_000_000)] = Field(
+        256, description="query points per video of the `tracks` export (TAP-Vid style: "
+        "drawn among the first frame's covered pixels)")
 
 
 class DistConfig(_Strict):
