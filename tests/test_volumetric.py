@@ -6,6 +6,7 @@ analytic visibility of the hole."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -22,7 +23,9 @@ from torchraster.shading.volumetric import (
     fog_transmittance,
     hg_phase,
     interleaved_gradient_noise,
+    light_optical_depth,
     light_source,
+    light_transmittance,
     march_inscatter,
     optical_depth,
 )
@@ -199,7 +202,10 @@ def test_light_shaft_only_under_the_hole():
     as the analytic visibility says (the march through the shadow map against a brute-force
     march with exact visibility)."""
     size, g = 32, 0.3
-    fog = Fog(density=0.2, anisotropy=g, steps=64, jitter=False, blur=0.0, max_distance=5.0)
+    # (homogeneous fog absorbs the sun on its way in: the shaft's geometry is tested without
+    # the light path, which has its own tests below)
+    fog = Fog(density=0.2, anisotropy=g, steps=64, jitter=False, blur=0.0, max_distance=5.0,
+              light_transmittance=False)
     view = tr.camera.look_at([0.0, 1.0, 3.5], [0.0, 1.3, 0.0])
     proj = tr.camera.perspective(50.0, 1.0, 0.1)
     sun = tr.DirectionalLights(direction=torch.tensor([[SUN_DIR]]),
@@ -328,7 +334,9 @@ def test_plan_skips_fog_unless_asked_and_reports_it():
     plan = tr.Renderer(8, fog=Fog(steps=8)).plan(scene, lights)
     assert "position" in plan.channels
     assert plan.fog == ("fog analytic (directional[0])", "fog march 8 steps jittered: point[0]",
-                        "fog blur 1 px")
+                        "fog blur 1 px", "fog light path: directional[0], point[0]")
+    plan = tr.Renderer(8, fog=Fog(steps=8, light_transmittance=False)).plan(scene, lights)
+    assert not any("light path" in s for s in plan.fog)
     assert all(s in plan for s in plan.fog)
     # shadow maps are rendered for the shafts even when no face receives shadows
     sun.cast_shadows = torch.tensor([[True]])
@@ -336,7 +344,7 @@ def test_plan_skips_fog_unless_asked_and_reports_it():
     assert tr.Renderer(8).plan(scene, lights).shadow_lights == ()
     plan = tr.Renderer(8, fog=Fog(blur=0.0)).plan(scene, lights)
     assert plan.shadow_lights and plan.fog[1].endswith("directional[0] shadowed, point[0]")
-    assert len(plan.fog) == 2
+    assert len(plan.fog) == 3
     only_ambient = tr.Renderer(8, fog=Fog()).plan(scene, tr.Lights(ambient=tr.sh_from_color(
         torch.ones(1, 3))))
     assert only_ambient.fog == ("fog analytic (ambient)",)
@@ -378,10 +386,11 @@ def test_renderer_fog_gradients_reach_fog_and_lights():
     intensity = torch.tensor([[2.0]], requires_grad=True)
     sun = tr.DirectionalLights(direction=torch.tensor([[SUN_DIR]]), color=torch.ones(1, 1, 3),
                                intensity=intensity, cast_shadows=torch.tensor([[True]]))
-    out = tr.Renderer(8, fog=Fog(density=density, steps=4))(scene, view, proj,
-                                                            tr.Lights(directional=sun))
+    falloff = torch.tensor(0.5, requires_grad=True)
+    out = tr.Renderer(8, fog=Fog(density=density, height_falloff=falloff, steps=4))(
+        scene, view, proj, tr.Lights(directional=sun))
     out.image.sum().backward()
-    for t in (density, intensity):
+    for t in (density, falloff, intensity):
         assert torch.isfinite(t.grad).all() and float(t.grad.abs().sum()) > 0
 
 
@@ -396,3 +405,318 @@ def test_the_shipped_fog_config_renders():
     assert any(s.startswith("fog march 16 steps jittered: directional[0] shadowed")
                for s in view.plan)
     assert bool(torch.isfinite(view.images["color"]).all())
+
+
+# ----------------------------------------------------------- light path (issue 21)
+
+
+def _sun(direction, intensity=2.0, dtype=F64, grad=False) -> tr.DirectionalLights:
+    d = torch.tensor([[direction]], dtype=dtype, requires_grad=grad)
+    return tr.DirectionalLights(direction=d, color=torch.ones(1, 1, 3, dtype=dtype),
+                                intensity=torch.tensor([[intensity]], dtype=dtype))
+
+
+def _bulb(position, intensity=5.0, dtype=F64, grad=False) -> tr.PointLights:
+    p = torch.tensor([[position]], dtype=dtype, requires_grad=grad)
+    return tr.PointLights(position=p, color=torch.ones(1, 1, 3, dtype=dtype),
+                          intensity=torch.tensor([[intensity]], dtype=dtype))
+
+
+def _points(dtype=F64) -> torch.Tensor:
+    g = torch.Generator().manual_seed(5)
+    p = torch.rand(1, 3, 3, 4, generator=g, dtype=dtype) * 4 - 2
+    p[:, 1] = torch.linspace(-1.0, 2.5, 12, dtype=dtype).view(3, 4)
+    return p
+
+
+SUNS = [(0.3, -1.0, 0.2), (1.0, -0.1, 0.0), (0.2, -0.01, 1.0), (1.0, 0.0, 0.0),
+        (0.5, 0.4, 0.0), (0.0, 1.0, 0.0)]  # climbing, grazing, horizon, below the horizon
+BULBS = [(0.3, 2.0, -0.5), (1.0, -1.5, 0.0), (4.0, 0.7, 1.0), (0.0, 0.5, 0.0)]
+
+
+@pytest.mark.parametrize("b", [0.0, 0.6, 3.0])
+def test_light_transmittance_matches_quadrature(b: float):
+    """Closed-form light-path optical depth against the midpoint rule: directional lights
+    (the ray up to far = 80 / (b l_y), where the fog has thinned out by e^-80) and point
+    lights (the segment), for homogeneous and height fog; the sun at or below the horizon
+    (and any sun in homogeneous fog) is opaque."""
+    fog = Fog(density=0.4, height_falloff=b, base_height=0.5)
+    dens = _density(0.4, b, 0.5)
+    p = _points()
+    for sun in SUNS:
+        got = light_optical_depth(p, "directional", _sun(sun), fog)[:, 0]
+        l_y = -sun[1] / math.sqrt(sum(c * c for c in sun))
+        if b == 0 or l_y <= 0:
+            assert torch.isinf(got).all(), (b, sun)
+            assert (light_transmittance(p, "directional", _sun(sun), fog) == 0).all()
+            continue
+        want = ref.light_optical_depth_reference(p, dens, direction=sun, far=80 / (b * l_y),
+                                                 steps=40000)
+        torch.testing.assert_close(got, want, rtol=1e-6, atol=1e-12)
+    for bulb in BULBS:
+        got = light_optical_depth(p, "point", _bulb(bulb), fog)[:, 0]
+        want = ref.light_optical_depth_reference(p, dens, position=bulb, steps=20000)
+        torch.testing.assert_close(got, want, rtol=1e-7, atol=1e-12)
+        spot = tr.SpotLights(position=torch.tensor([[bulb]], dtype=F64),
+                             direction=torch.tensor([[[0.0, -1.0, 0.0]]], dtype=F64),
+                             color=torch.ones(1, 1, 3, dtype=F64),
+                             intensity=torch.ones(1, 1, dtype=F64))
+        torch.testing.assert_close(light_optical_depth(p, "spot", spot, fog)[:, 0], got)
+
+
+def test_light_transmittance_homogeneous_and_flat_limits_are_exact():
+    """Homogeneous fog: T = exp(-a d) along any segment; a horizontal segment in height fog:
+    T = exp(-rho(y) d); a point at the light: T = 1."""
+    p = _points()
+    bulb = (0.7, 1.1, -0.4)
+    d = (torch.tensor(bulb, dtype=F64).view(1, 3, 1, 1) - p).norm(dim=1, keepdim=True)
+    got = light_transmittance(p, "point", _bulb(bulb), Fog(density=0.35))[:, 0]
+    torch.testing.assert_close(got, torch.exp(-0.35 * d), rtol=1e-14, atol=0)
+    flat = p.clone()
+    flat[:, 1] = 1.1  # the light's height
+    fog = Fog(density=0.35, height_falloff=1.7, base_height=0.2)
+    d = (torch.tensor(bulb, dtype=F64).view(1, 3, 1, 1) - flat).norm(dim=1, keepdim=True)
+    want = torch.exp(-0.35 * math.exp(-1.7 * 0.9) * d)
+    torch.testing.assert_close(light_transmittance(flat, "point", _bulb(bulb), fog)[:, 0], want,
+                               rtol=1e-14, atol=0)
+    at = torch.tensor(bulb, dtype=F64).view(1, 3, 1, 1)
+    assert float(light_transmittance(at, "point", _bulb(bulb), fog)) == 1.0
+    # switched off: 1 everywhere
+    off = Fog(density=0.35, light_transmittance=False)
+    assert (light_transmittance(p, "directional", _sun(SUNS[0]), off) == 1).all()
+
+
+def _view_cases():
+    """Eye at y = 1, rays with v_y below / equal to / above the sun's l_y (= 0.6), level,
+    and the distances: finite, and infinite (the sky) for climbing and level rays."""
+    vy = [-0.8, -0.3, 0.0, 0.3, 0.6, 0.6, 0.9, 0.3, 0.0, 0.95, -0.5]
+    dist = [6.0, 3.0, 5.0, 8.0, 4.0, 0.0, 10.0, math.inf, math.inf, math.inf, math.inf]
+    rays = torch.tensor([[math.sqrt(1 - y * y), y, 0.0] for y in vy], dtype=F64).T
+    return rays.reshape(1, 3, 1, -1), torch.tensor(dist, dtype=F64).view(1, 1, 1, -1)
+
+
+def test_directional_inscatter_is_the_integral_along_the_view_ray():
+    """The closed-form in-scattering of an unshadowed sun dimmed on its way in, against the
+    brute-force march of the sun's source with a numerically integrated light path (infinite
+    view rays marched up to where the fog has thinned out, or become opaque)."""
+    a, b, y0, g = 0.3, 0.7, 0.5, 0.4
+    sun = (0.0, -0.6, 0.8)  # l_y = 0.6
+    fog = Fog(density=a, height_falloff=b, base_height=y0, anisotropy=g, color=(0.9, 0.8, 0.7),
+              steps=4)
+    eye = torch.tensor([[0.0, 1.0, 0.0]], dtype=F64)
+    rays, dist = _view_cases()
+    lights = tr.Lights(directional=_sun(sun))
+    got = fog_terms(dist, eye, rays, fog, lights).analytic
+    dens = _density(a, b, y0)
+    # brute force: truncate infinite rays where the rest is below 1e-12 of the integral
+    vy = rays[:, 1:2]
+    rho_eye = a * math.exp(-b * (1.0 - y0))
+    # (climbing: e^-40 of the density left; level: tau = 40; falling: tau > 100 by 15 m)
+    far = torch.where(vy > 0, 40 / (b * vy.clamp_min(1e-9)), torch.full_like(vy, 40 / rho_eye))
+    far = torch.where(vy < 0, torch.full_like(vy, 15.0), far)
+    end = torch.where(torch.isinf(dist), far, dist)
+    src = ref.punctual_source_reference(rays, g, torch.full((3,), 2.0), dens, direction=sun,
+                                        far=40 / (b * 0.6), steps=3000)
+    want = ref.march_reference(eye, rays, torch.zeros_like(end), end, dens,
+                               torch.tensor([0.9, 0.8, 0.7]), src, steps=3000)
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-12)
+    # the same rays without the light path: 1 - T_v of the undimmed source
+    off = fog_terms(dist, eye, rays, dataclasses.replace(fog, light_transmittance=False),
+                    lights).analytic
+    src_off = ref.punctual_source_reference(rays, g, torch.full((3,), 2.0), dens,
+                                            direction=sun, dimmed=False)
+    want_off = ref.march_reference(eye, rays, torch.zeros_like(end), end, dens,
+                                   torch.tensor([0.9, 0.8, 0.7]), src_off, steps=4000)
+    torch.testing.assert_close(off, want_off, rtol=1e-5, atol=1e-12)
+    assert bool((off > got).all() | (dist == 0).any())  # dimming only removes light
+
+
+def test_sun_in_homogeneous_fog_or_below_the_horizon_adds_nothing():
+    eye = torch.tensor([[0.0, 1.0, 0.0]], dtype=F64)
+    rays, dist = _view_cases()
+    for fog, sun in ((Fog(density=0.3), SUNS[0]),
+                     (Fog(density=0.3, height_falloff=0.5), (1.0, 0.2, 0.0)),
+                     (Fog(density=0.3, height_falloff=0.5), (1.0, 0.0, 0.0))):
+        t = fog_terms(dist, eye, rays, fog, tr.Lights(directional=_sun(sun)))
+        assert (t.analytic == 0).all() and torch.isfinite(t.transmittance).all()
+
+
+@pytest.mark.parametrize("jitter", [False, True])
+def test_march_with_light_path_converges_to_brute_force(jitter: bool):
+    """Point light dimmed on the way to every fog sample: the engine's march against the
+    brute-force march whose source integrates each sample's light path numerically."""
+    a, b, y0, g = 0.3, 0.7, 0.5, 0.4
+    fog = Fog(density=a, height_falloff=b, base_height=y0, color=(0.9, 0.8, 0.7), anisotropy=g)
+    eye = torch.tensor([[0.0, 1.0, 4.0]], dtype=F64)
+    rays = _rays(5, 5)
+    light = (0.3, 1.5, 0.0)
+    src = light_source(tr.Lights(point=_bulb(light)), rays, g, fog=fog)
+    start = torch.full((1, 1, 5, 5), 0.5, dtype=F64)
+    end = torch.full((1, 1, 5, 5), 6.0, dtype=F64)
+    want = ref.march_reference(eye, rays, start, end, _density(a, b, y0),
+                               torch.tensor([0.9, 0.8, 0.7]),
+                               ref.punctual_source_reference(rays, g, torch.full((3,), 5.0),
+                                                             _density(a, b, y0),
+                                                             position=light, steps=512),
+                               steps=1024)
+    got = march_inscatter(eye, rays, start, end, fog, src, steps=256, jitter=jitter)
+    rel = float((got - want).abs().mean() / want.abs().mean())
+    assert rel < (2e-3 if jitter else 1e-4), rel
+    undimmed = march_inscatter(eye, rays, start, end, fog, light_source(
+        tr.Lights(point=_bulb(light)), rays, g), steps=256, jitter=jitter)
+    assert float((undimmed - want).abs().mean() / want.abs().mean()) > 0.05  # it matters
+
+
+def _floor(size: float = 6.0) -> tr.RenderScene:
+    pos = torch.tensor([(-size, 0.0, -size), (-size, 0.0, size), (size, 0.0, size),
+                        (size, 0.0, -size)])
+    return tr.RenderScene.from_mesh(tr.Mesh(pos, torch.tensor([(0, 1, 2), (0, 2, 3)])))
+
+
+@pytest.mark.parametrize("kind", ["directional", "point"])
+def test_surface_lighting_is_dimmed_by_the_light_path(kind: str):
+    """A floor lit through height fog that scatters nothing (colour 0): the fogged image
+    with the light path over the one without is the light's transmittance from each floor
+    point, against the midpoint quadrature at the same points."""
+    a, b, y0 = 0.25, 0.4, 0.0
+    view = tr.camera.look_at([0.0, 2.0, 4.0], [0.0, 0.0, 0.0])
+    proj = tr.camera.perspective(60.0, 1.0, 0.1)
+    sun, bulb = (0.4, -0.7, -0.3), (0.5, 2.5, -0.5)
+    lights = tr.Lights(directional=_sun(sun, dtype=torch.float32)) if kind == "directional" \
+        else tr.Lights(point=_bulb(bulb, dtype=torch.float32))
+    fog = Fog(density=a, height_falloff=b, base_height=y0, color=(0.0, 0.0, 0.0))
+    on = tr.Renderer(16, fog=fog)(_floor(), view, proj, lights, channels={"position"})
+    off = tr.Renderer(16, fog=dataclasses.replace(fog, light_transmittance=False))(
+        _floor(), view, proj, lights)
+    assert on.plan.fog[-1] == f"fog light path: {kind}[0]"
+    lit = (on.alpha[:, 0] > 0) & (off.image[:, 1] > 1e-4)
+    assert float(lit.double().mean()) > 0.5
+    ratio = (on.image / off.image.clamp_min(1e-12))[:, 1][lit].double()
+    p = on.gbuffer["position"].double()
+    if kind == "directional":
+        l_y = 0.7 / math.sqrt(0.4**2 + 0.7**2 + 0.3**2)
+        tau = ref.light_optical_depth_reference(p, _density(a, b, y0), direction=sun,
+                                                far=80 / (b * l_y))
+    else:
+        tau = ref.light_optical_depth_reference(p, _density(a, b, y0), position=bulb)
+    torch.testing.assert_close(ratio, torch.exp(-tau)[:, 0][lit], rtol=2e-5, atol=0)
+    assert float(ratio.max()) < 0.9  # the fog did dim it
+
+
+def test_gradcheck_light_path():
+    """Light-path transmittance (surface hook) and the fogged image (analytic sun, marched
+    point light, both dimmed) w.r.t. fog density and falloff, sun direction and light
+    position."""
+    from torchraster.shading.volumetric import surface_light_hook
+
+    p = _points()[..., :2, :3]
+    eye = torch.tensor([[0.0, 1.0, 3.0]], dtype=F64)
+    rays = _rays(2, 3)
+    dist = torch.tensor([[[[2.0, 3.0, math.inf], [1.0, 5.0, 0.5]]]], dtype=F64)
+    image = torch.rand(1, 3, 2, 3, dtype=F64)
+
+    def f(density, falloff, direction, position):
+        lights = tr.Lights(directional=tr.DirectionalLights(
+            direction=direction.view(1, 1, 3), color=torch.ones(1, 1, 3, dtype=F64),
+            intensity=torch.tensor([[1.5]], dtype=F64)), point=tr.PointLights(
+            position=position.view(1, 1, 3), color=torch.ones(1, 1, 3, dtype=F64),
+            intensity=torch.tensor([[4.0]], dtype=F64)))
+        fog = Fog(density=density, height_falloff=falloff, base_height=0.3, anisotropy=0.3,
+                  steps=3, blur=0.0, max_distance=30.0)
+        hook = surface_light_hook(fog, lights, p)
+        return (hook("directional", slice(0, 1)), hook("point", slice(0, 1)),
+                apply_fog(image, dist, eye, rays, fog, lights))
+
+    args = (torch.tensor(0.3, dtype=F64, requires_grad=True),
+            torch.tensor(0.6, dtype=F64, requires_grad=True),
+            torch.tensor([0.2, -1.0, 0.1], dtype=F64, requires_grad=True),
+            torch.tensor([0.4, 1.8, -0.2], dtype=F64, requires_grad=True))
+    assert torch.autograd.gradcheck(f, args)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_light_path_extremes_stay_finite(dtype):
+    """Zero, tiny and huge falloff, dense fog, the sun below / at / just above the horizon,
+    lights inside the fog, under the base height and at a fog sample: finite values and
+    gradients (a documented limit: such a sun is absorbed, T = 0)."""
+    h, w = 3, 4
+    rays = _rays(h, w, dtype)
+    rays[:, :, 0, :] = torch.tensor([1.0, 0.0, 0.0], dtype=dtype).view(1, 3, 1)
+    image = torch.ones(1, 3, h, w, dtype=dtype)
+    for density, falloff in ((0.3, 0.0), (0.3, 1e-7), (0.3, 1e3), (1e4, 50.0), (1e-30, 1.0)):
+        for sun in ((0.3, -1.0, 0.0), (1.0, 0.0, 0.0), (1.0, 1e-6, 0.0), (1.0, -1e-7, 0.0),
+                    (0.0, 1.0, 0.0)):
+            for bulb in ((0.0, 1.0, 0.0), (0.0, -30.0, 1.0), (0.5, 1.2, 2.0)):
+                d = torch.tensor(density, dtype=dtype, requires_grad=True)
+                b = torch.tensor(falloff, dtype=dtype, requires_grad=True)
+                sd = torch.tensor([[sun]], dtype=dtype, requires_grad=True)
+                pos = torch.tensor([[bulb]], dtype=dtype, requires_grad=True)
+                lights = tr.Lights(
+                    directional=tr.DirectionalLights(direction=sd, color=torch.ones(
+                        1, 1, 3, dtype=dtype), intensity=torch.ones(1, 1, dtype=dtype)),
+                    point=tr.PointLights(position=pos, color=torch.ones(1, 1, 3, dtype=dtype),
+                                         intensity=torch.ones(1, 1, dtype=dtype)))
+                fog = Fog(density=d, height_falloff=b, steps=3, blur=1.0)
+                eye = torch.tensor([[0.0, 1.0, 0.0]], dtype=dtype)
+                dist = torch.full((1, 1, h, w), math.inf, dtype=dtype)
+                dist[..., 1, :] = 2.0
+                out = apply_fog(image, dist, eye, rays, fog, lights)
+                from torchraster.shading.volumetric import surface_light_hook
+
+                hook = surface_light_hook(fog, lights, eye[:, :, None, None] + rays * 2.0)
+                t = hook("directional", slice(0, 1)).sum() + hook("point", slice(0, 1)).sum()
+                assert torch.isfinite(out).all() and torch.isfinite(t), (density, falloff, sun)
+                (out.sum() + t).backward()
+                for x in (d, b, sd, pos):
+                    assert torch.isfinite(x.grad).all(), (density, falloff, sun, bulb)
+
+
+def test_environment_lights_the_fog():
+    """An environment map's in-scattering (9 SH coefficients convolved with HG) against the
+    brute-force sum over the map's texels of phase x radiance x solid angle, for a smooth
+    (band-limited) map with a yaw and an intensity; times (1 - T_v)."""
+    from torchraster.shading.ibl import Environment
+    from torchraster.texture import latlong_directions, latlong_solid_angles
+
+    he, we = 64, 128
+    d = latlong_directions(he, we, dtype=F64)[0]
+    radiance = torch.stack([1 + 0.5 * d[1] + 0.3 * d[0], 0.5 + 0.2 * d[2] * d[0],
+                            0.8 - 0.3 * d[2]])
+    env = Environment(radiance, yaw=0.7, intensity=1.5)
+    fog = Fog(density=0.3, height_falloff=0.4, anisotropy=0.5, color=(0.9, 0.8, 0.7))
+    eye = torch.tensor([[0.0, 1.0, 0.0]], dtype=F64)
+    rays = _rays(2, 3)
+    dist = torch.tensor([[[[2.0, 3.0, math.inf], [1.0, 5.0, 0.5]]]], dtype=F64)
+    t = fog_terms(dist, eye, rays, fog, environment=env)
+    omega = latlong_solid_angles(he, we, dtype=F64)
+    c, s_ = math.cos(0.7), math.sin(0.7)
+    world = torch.stack([c * d[0] + s_ * d[2], d[1], -s_ * d[0] + c * d[2]])  # yaw about +y
+    want = torch.zeros_like(rays)
+    for i in range(2):
+        for j in range(3):
+            p = ref.hg_phase_reference((world * rays[0, :, i, j].view(3, 1, 1)).sum(0), 0.5)
+            want[0, :, i, j] = 1.5 * (radiance * p * omega).sum((-2, -1))
+    want = want * torch.tensor([0.9, 0.8, 0.7], dtype=F64).view(1, 3, 1, 1) * (
+        1 - t.transmittance)
+    torch.testing.assert_close(t.analytic, want, rtol=2e-3, atol=1e-6)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_renderer_fog_in_half_precision(dtype):
+    """Half-precision scenes are fogged in float32: finite image and gradients (the light
+    path, the sun at the horizon, dense height fog)."""
+    pos = _floor().positions.to(dtype).clone().requires_grad_()
+    scene = tr.RenderScene.from_mesh(tr.Mesh(pos, torch.tensor([(0, 1, 2), (0, 2, 3)])))
+    for sun, density, falloff in (((0.3, -1.0, 0.2), 0.3, 0.5), ((1.0, 0.0, 0.0), 50.0, 20.0)):
+        sd = torch.tensor([[sun]], dtype=dtype, requires_grad=True)
+        lights = tr.Lights(directional=tr.DirectionalLights(
+            direction=sd, color=torch.ones(1, 1, 3, dtype=dtype),
+            intensity=torch.full((1, 1), 3.0, dtype=dtype)), point=_bulb(
+            (0.5, 1.0, 0.0), dtype=dtype))
+        view = tr.camera.look_at([0.0, 2.0, 4.0], [0.0, 0.0, 0.0]).to(dtype)
+        proj = tr.camera.perspective(60.0, 1.0, 0.1).to(dtype)
+        fog = Fog(density=density, height_falloff=falloff, steps=3)
+        out = tr.Renderer(12, fog=fog)(scene, view, proj, lights)
+        assert out.image.dtype == dtype and torch.isfinite(out.image).all()
+        out.image.float().sum().backward()
+        assert torch.isfinite(pos.grad).all() and torch.isfinite(sd.grad).all()

@@ -49,9 +49,29 @@ light), the light's illuminance ``E`` (with the range window and spot cone of
   joint bilateral blur guided by the log distance then removes the jitter noise without
   bleeding across depth edges.
 
-Not modelled: extinction on the way from the light to a fog sample, in-scattering of the
-environment map and of emissive surfaces (give them as ``Lights.ambient`` / ``Fog.ambient``),
-multiple scattering. Defaults are measured in docs/benchmarks.md ("Fog").
+* **Light path** (``Fog.light_transmittance``, default on). The light is dimmed on its way
+  in too: each punctual light's illuminance is multiplied by the fog's transmittance from
+  the lit point to the light, ``T_l = exp(-tau)`` with the same closed-form optical depth
+  (:func:`light_transmittance`): along the segment to a point / spot light, and along the
+  infinite ray towards ``-direction`` for a directional light, which is finite only when it
+  climbs out of a height fog (``tau = rho_p / (b l_y)``) and opaque otherwise: a sun at or
+  below the horizon, and any sun in homogeneous fog (``height_falloff = 0`` fills all
+  space), is fully absorbed. It multiplies the surface lighting (the renderer passes it to
+  ``shade`` with the shadow factor, :func:`surface_light_hook`) and every fog sample of the
+  march. The unshadowed directional in-scattering stays analytic: with
+  ``rho(t) = rho_o e^(-k t)`` (``k = b v_y``), ``T_l(t) = exp(-rho(t) / c)`` (``c = b l_y``)
+  and the substitution ``u = rho(t)``::
+
+      integral_0^s sigma_t T_v T_l dt = T_l(0) tau_v (1 - e^(-x)) / x,   x = (1 - v_y / l_y) tau_v
+
+  (:func:`directional_inscatter_weight`; ``T_l(0) / (1 - v_y / l_y)`` for an infinite view
+  ray that does not climb; without the light path it is ``1 - T_v(s)``).
+
+An environment map lights the fog like the ambient light (``fog_terms(environment=...)``:
+its 9 SH coefficients, looked up along the env-space view rays). Not modelled: the
+in-scattering of emissive surfaces (give it as ``Fog.ambient``), the dimming of ambient and
+environment light on its way in, multiple scattering. Defaults are measured in
+docs/benchmarks.md ("Fog", "Fog light path").
 
 Gradients: everything is differentiable with respect to the fog parameters (they may be
 tensors), the lights and the image; the shadow lookup of a fog sample is a hard comparison
@@ -69,7 +89,17 @@ from typing import NamedTuple
 import torch
 
 from torchraster._validate import check_tensor
-from torchraster.shading.lights import Lights, point_incidence, sh_basis, spot_incidence
+from torchraster.numerics import LOW_PRECISION, finish_low_precision, safe_normalize
+from torchraster.shading.ibl import Environment
+from torchraster.shading.lights import (
+    DirectionalLights,
+    Lights,
+    PointLights,
+    SpotLights,
+    point_incidence,
+    sh_basis,
+    spot_incidence,
+)
 from torchraster.shading.shadows import ShadowMaps, shadow_visibility
 
 #: Largest exponent of the height term ``-height_falloff * (y - base_height)``, largest
@@ -114,6 +144,11 @@ class Fog:
         max_distance: distance (m) of the background (sky) behind empty pixels; ``inf`` =
             infinitely far (opaque, unless the ray climbs out of a height fog).
         seed: offset of the jitter pattern (e.g. a frame index, for temporal accumulation).
+        light_transmittance: dim each punctual light by the fog between it and the lit
+            point (surfaces and fog samples); a directional light is fully absorbed in
+            homogeneous fog and when it is at or below the horizon (module docstring).
+            False: the light reaches every point undimmed (the fog only attenuates along
+            the view ray).
     """
 
     density: float | torch.Tensor = 0.1
@@ -127,6 +162,7 @@ class Fog:
     blur: float = 1.0
     max_distance: float = math.inf
     seed: int = 0
+    light_transmittance: bool = True
 
     def __post_init__(self) -> None:
         def bad(name: str, expected: str) -> None:
@@ -152,8 +188,9 @@ class Fog:
         if isinstance(self.steps, bool) or not isinstance(self.steps, int) or not (
                 1 <= self.steps <= 1024):
             bad("steps", "an int in [1, 1024]")
-        if not isinstance(self.jitter, bool):
-            bad("jitter", "a bool")
+        for name in ("jitter", "light_transmittance"):
+            if not isinstance(getattr(self, name), bool):
+                bad(name, "a bool")
         if isinstance(self.blur, bool) or not isinstance(self.blur, (int, float)) or not (
                 0 <= self.blur <= 16):
             bad("blur", "a number in [0, 16] (pixels)")
@@ -273,6 +310,134 @@ def fog_transmittance(origin_y: torch.Tensor, dir_y: torch.Tensor, length: torch
     return torch.exp(-optical_depth(origin_y, dir_y, length, fog))
 
 
+def light_optical_depth(points: torch.Tensor, kind: str,
+                        lights: DirectionalLights | PointLights | SpotLights, fog: Fog
+                        ) -> torch.Tensor:
+    """Optical depth of the fog between points and each light (:func:`optical_depth`).
+
+    Directional: the infinite ray from the point towards ``-direction`` (finite only when it
+    climbs out of a height fog, ``tau = rho_p / (b l_y)``; a light at or below the horizon,
+    or in homogeneous fog, gives ``inf``). Point / spot: the segment from the point to the
+    light's position (0 at the light itself).
+
+    Args:
+        points: ``(B, 3, H, W)`` world positions (m).
+        kind: ``"directional"``, ``"point"`` or ``"spot"``.
+        lights: that kind's L lights, batch size B (or 1).
+        fog: the medium.
+
+    Returns:
+        ``(B, L, 1, H, W)`` optical depth >= 0 (may be ``inf``); finite gradients.
+    """
+    check_tensor("points", points, ("B", 3, None, None), floating=True)
+    if kind not in ("directional", "point", "spot"):
+        raise ValueError(f"kind: expected 'directional', 'point' or 'spot', got {kind!r}")
+    py = points[:, None, 1:2]  # (B, 1, 1, H, W)
+    if kind == "directional":
+        l_y = -safe_normalize(lights.direction.to(points), dim=-1)[..., 1]  # (B, L)
+        inf = torch.full((1, 1, 1, 1, 1), math.inf, dtype=points.dtype, device=points.device)
+        return optical_depth(py, l_y[..., None, None, None], inf, fog)
+    d = lights.position.to(points)[..., None, None] - points[:, None]  # (B, L, 3, H, W)
+    d2 = (d * d).sum(2, keepdim=True)
+    ok = d2 > 1e-24
+    dist = torch.sqrt(torch.where(ok, d2, torch.ones_like(d2)))  # finite gradients at 0
+    dir_y = torch.where(ok, d[:, :, 1:2] / dist, torch.zeros_like(dist))
+    return optical_depth(py, dir_y, dist * ok, fog)
+
+
+def light_transmittance(points: torch.Tensor, kind: str,
+                        lights: DirectionalLights | PointLights | SpotLights, fog: Fog
+                        ) -> torch.Tensor:
+    """Transmittance of the fog between points and each light: ``exp(-tau)`` of
+    :func:`light_optical_depth`; 1 where ``fog.light_transmittance`` is False.
+
+    Returns:
+        ``(B, L, 1, H, W)`` in [0, 1].
+    """
+    if not fog.light_transmittance:
+        b, _, h, w = points.shape
+        return points.new_ones(b, lights.count, 1, h, w)
+    return torch.exp(-light_optical_depth(points, kind, lights, fog))
+
+
+def directional_inscatter_weight(origin_y: torch.Tensor, dir_y: torch.Tensor,
+                                 length: torch.Tensor, light_y: torch.Tensor, fog: Fog
+                                 ) -> torch.Tensor:
+    """``integral_0^s sigma_t(t) T_v(t) T_l(t) dt``: the in-scattering of a directional light
+    along a view ray per unit ``color * phase * E`` (module docstring, "Light path").
+
+    ``T_v`` is the transmittance from the eye, ``T_l`` the one towards the light
+    (:func:`light_transmittance`). Closed form ``T_l(0) tau_v (1 - e^-x) / x`` with
+    ``x = (1 - v_y / l_y) tau_v``, written as ``exp(log T_l(0) + max(-x, 0)) tau_v
+    (1 - e^-|x|) / |x|`` so that no factor overflows when ``x < 0`` (the view ray climbs
+    faster than the light ray); ``T_l(0) / (1 - v_y / l_y)`` for an infinite view ray that
+    does not climb; 0 when the light ray does not climb (opaque). Without the light path
+    (``fog.light_transmittance`` False): ``1 - T_v(s)``.
+
+    Args:
+        origin_y: ``(B, 1, 1, H, W)`` eye heights; dir_y: ``(B, 1, 1, H, W)`` view ray y.
+        length: ``(B, 1, 1, H, W)`` ray lengths (m), may be ``inf``.
+        light_y: ``(B, L, 1, 1, 1)`` y of the unit directions towards the lights.
+        fog: the medium.
+
+    Returns:
+        ``(B, L, 1, H, W)`` in [0, 1]; finite gradients.
+    """
+    tau_v = optical_depth(origin_y, dir_y, length, fog)
+    if not fog.light_transmittance:
+        return (-torch.expm1(-tau_v)).expand(*light_y.shape[:2], *tau_v.shape[2:])
+    c = fog.param("height_falloff", light_y) * light_y
+    climbs = c > MIN_CLIMB
+    l_y = torch.where(climbs, light_y, torch.ones_like(light_y))
+    log_tl0 = -fog_density(origin_y, fog) / torch.where(climbs, c, torch.ones_like(c))
+    one_minus_r = 1 - dir_y / l_y
+    inf_v = torch.isinf(tau_v)  # never climbs out: then 1 - r > 0 (v_y <= 0 < l_y)
+    tau = torch.where(inf_v, torch.zeros_like(tau_v), tau_v)
+    x = one_minus_r * tau
+    finite = torch.exp((log_tl0 + (-x).clamp_min(0)).clamp_max(0)) * tau * _one_minus_exp_over(
+        x.abs())
+    infinite = torch.exp(log_tl0) / torch.where(inf_v, one_minus_r, torch.ones_like(x)
+                                                ).clamp_min(1e-30)
+    return torch.where(climbs, torch.where(inf_v, infinite, finite), torch.zeros_like(x))
+
+
+def surface_light_hook(fog: Fog, lights: Lights, position: torch.Tensor,
+                       mask: torch.Tensor | None = None,
+                       visibility: Callable[[str, slice], torch.Tensor | None] | None = None
+                       ) -> Callable[[str, slice], torch.Tensor | None]:
+    """A ``shade`` visibility hook that multiplies each punctual light's illuminance at the
+    surface by the fog's transmittance to the light (:func:`light_transmittance`), times the
+    shadow factor of ``visibility``.
+
+    Args:
+        fog: the medium (with ``light_transmittance`` False the hook is ``visibility``).
+        lights: the scene's lights, batch size B or 1.
+        position: ``(B, 3, H, W)`` world positions of the shaded surfaces.
+        mask: ``(B, 1, H, W)`` covered pixels (others are evaluated at the origin, so that
+            garbage in empty pixels reaches neither values nor gradients); None = all.
+        visibility: the shadow hook of :func:`~torchraster.shading.lighting.shade`, or None.
+
+    Returns:
+        ``hook(kind, lights_slice) -> (B, L_slice, 1, H, W)`` (float32 at least).
+    """
+    if not fog.light_transmittance:
+        return visibility  # type: ignore[return-value]
+    check_tensor("position", position, ("B", 3, None, None), floating=True)
+    b = position.shape[0]
+    dt = torch.promote_types(position.dtype, torch.float32)
+    p = position.to(dt)
+    if mask is not None:
+        p = torch.where(mask > 0, p, torch.zeros_like(p))
+    lights = lights.expand(b) if lights.batch_size == 1 and b > 1 else lights
+
+    def hook(kind: str, sl: slice) -> torch.Tensor | None:
+        t = light_transmittance(p, kind, getattr(lights, kind).select(sl), fog)
+        vis = None if visibility is None else visibility(kind, sl)
+        return t if vis is None else t * vis.to(t.dtype)
+
+    return hook
+
+
 def ambient_inscatter(sh: torch.Tensor, rays: torch.Tensor, g: float | torch.Tensor
                       ) -> torch.Tensor:
     """Ambient light scattered towards the eye: ``integral p(w . v) L(w) dw``.
@@ -353,7 +518,7 @@ def marched_lights(lights: Lights | None, shadow_maps: Sequence[ShadowMaps] = ()
 
 def light_source(lights: Lights, rays: torch.Tensor, g: float | torch.Tensor,
                  shadow_maps: Sequence[ShadowMaps] = (), camera_view: torch.Tensor | None = None,
-                 kinds: dict[str, list[int]] | None = None
+                 kinds: dict[str, list[int]] | None = None, fog: Fog | None = None
                  ) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
     """The in-scattering source of the marched lights at fog samples.
 
@@ -364,11 +529,14 @@ def light_source(lights: Lights, rays: torch.Tensor, g: float | torch.Tensor,
         shadow_maps: rendered :class:`ShadowMaps` (their lights are shadowed).
         camera_view: ``(B, 4, 4)`` world -> camera view (cascade selection).
         kinds: the lights to evaluate (default :func:`marched_lights`).
+        fog: the medium: with ``fog.light_transmittance`` each light is dimmed by the fog
+            between it and the sample (:func:`light_transmittance`); None = undimmed.
 
     Returns:
         ``source(p, valid)``: ``p`` ``(B, 3, H, W)`` sample positions, ``valid`` ``(B, 1, H,
         W)`` bool (samples to look up in the shadow maps) -> ``(B, 3, H, W)``
-        ``sum p_HG(l . v) E V`` (lux per steradian: radiance per unit scattering length).
+        ``sum p_HG(l . v) E T_l V`` (lux per steradian: radiance per unit scattering
+        length).
     """
     kinds = marched_lights(lights, shadow_maps) if kinds is None else kinds
     b = rays.shape[0]
@@ -387,6 +555,8 @@ def light_source(lights: Lights, rays: torch.Tensor, g: float | torch.Tensor,
                 l, e = point_incidence(part, p)
             else:
                 l, e = spot_incidence(part, p)
+            if fog is not None and fog.light_transmittance:  # dimmed on the way in
+                e = e * light_transmittance(p, kind, part, fog)
             phase = hg_phase((l * rays[:, None]).sum(2, keepdim=True), g)  # (B, L, 1, H, W)
             vis = torch.ones_like(phase[..., :1, :, :].expand(-1, -1, -1, *p.shape[-2:]))
             for m in groups:
@@ -458,8 +628,8 @@ def march_inscatter(eye: torch.Tensor, rays: torch.Tensor, start: torch.Tensor,
 
 def fog_terms(distance: torch.Tensor, eye: torch.Tensor, rays: torch.Tensor, fog: Fog,
               lights: Lights | None = None, shadow_maps: Sequence[ShadowMaps] = (),
-              camera_view: torch.Tensor | None = None, bounds: torch.Tensor | None = None
-              ) -> FogTerms:
+              camera_view: torch.Tensor | None = None, bounds: torch.Tensor | None = None,
+              environment: Environment | None = None) -> FogTerms:
     """Transmittance and in-scattered light of the fog along the view rays.
 
     Args:
@@ -474,6 +644,9 @@ def fog_terms(distance: torch.Tensor, eye: torch.Tensor, rays: torch.Tensor, fog
             distance of the box's farthest corner from the eye (the box grown to hold the
             point / spot lights); None: up to the farthest finite distance of the frame
             (at most :data:`MAX_MARCH_DISTANCE`).
+        environment: an :class:`~torchraster.shading.ibl.Environment` lighting the fog
+            like the ambient light (its 9 SH coefficients convolved with the phase, not
+            dimmed on the way in), or None.
 
     Returns:
         :class:`FogTerms`.
@@ -495,8 +668,15 @@ def fog_terms(distance: torch.Tensor, eye: torch.Tensor, rays: torch.Tensor, fog
     if lights is not None and lights.ambient is not None:
         sh = lights.ambient.expand(b, 9, 3) if lights.ambient.shape[0] == 1 else lights.ambient
         const = const + ambient_inscatter(sh, rays, g)
+    if environment is not None:  # SH in env space: look it up along the env-space rays
+        sh = environment.sh.to(dtype)
+        env_in = ambient_inscatter(sh.expand(b, 9, 3) if sh.shape[0] == 1 else sh,
+                                   environment.to_env(rays), g)
+        k = environment.intensity
+        const = const + env_in * (k if isinstance(k, float) else k.to(dtype).reshape(-1, 1, 1, 1))
     kinds = marched_lights(lights, shadow_maps)
-    marched_dir = torch.zeros_like(rays)  # directional lights marched inside the box
+    dir_analytic = torch.zeros_like(rays)  # unshadowed directional lights
+    marched_dir = None  # (B, L, 3, H, W) shadowed ones: marched inside the box
     if lights is not None and lights.directional is not None and lights.directional.count:
         d = lights.directional.expand(b) if lights.directional.batch_size == 1 else (
             lights.directional)
@@ -507,9 +687,15 @@ def fog_terms(distance: torch.Tensor, eye: torch.Tensor, rays: torch.Tensor, fog
         per = hg_phase(cos, g)[:, :, None] * e[..., None, None]  # (B, L, 3, H, W)
         shadowed = torch.zeros(d.count, dtype=torch.bool, device=rays.device)
         shadowed[kinds.get("directional", [])] = True
-        const = const + per[:, ~shadowed].sum(1)
-        marched_dir = per[:, shadowed].sum(1)
-    analytic = color * const * (1 - trans)
+        l_y = l[:, :, 1, None, None, None]  # (B, L, 1, 1, 1)
+
+        def weight(length: torch.Tensor) -> torch.Tensor:  # (B, L, 1, H, W)
+            return directional_inscatter_weight(oy[:, None], dy[:, None], length[:, None],
+                                                l_y, fog)
+
+        dir_analytic = (per[:, ~shadowed] * weight(s)[:, ~shadowed]).sum(1)
+        marched_dir = per[:, shadowed]
+    analytic = color * (const * (1 - trans) + dir_analytic)
     marched = torch.zeros_like(rays)
     if kinds:
         with torch.no_grad():
@@ -529,12 +715,12 @@ def fog_terms(distance: torch.Tensor, eye: torch.Tensor, rays: torch.Tensor, fog
             far = torch.as_tensor(far, dtype=dtype, device=s.device).clamp_max(
                 MAX_MARCH_DISTANCE)
             start, end = torch.zeros_like(s), torch.minimum(s.detach(), far)
-        source = light_source(lights, rays, g, shadow_maps, camera_view, kinds)
+        source = light_source(lights, rays, g, shadow_maps, camera_view, kinds, fog)
         marched = march_inscatter(eye, rays, start, end, fog, source)
-        if "directional" in kinds:  # outside the march range: unshadowed, analytic
-            outside = (1 - fog_transmittance(oy, dy, start, fog)) + (
-                fog_transmittance(oy, dy, end, fog) - trans)
-            analytic = analytic + color * marched_dir * outside
+        if "directional" in kinds:  # outside the march range [start, end]: unshadowed
+            sel = torch.tensor(kinds["directional"], device=rays.device)
+            outside = weight(start) + weight(s) - weight(end)
+            analytic = analytic + color * (marched_dir * outside.index_select(1, sel)).sum(1)
     return FogTerms(trans, analytic, marched)
 
 
@@ -568,27 +754,35 @@ def depth_aware_blur(x: torch.Tensor, distance: torch.Tensor, sigma: float) -> t
 def apply_fog(image: torch.Tensor, distance: torch.Tensor, eye: torch.Tensor,
               rays: torch.Tensor, fog: Fog, lights: Lights | None = None,
               shadow_maps: Sequence[ShadowMaps] = (), camera_view: torch.Tensor | None = None,
-              bounds: torch.Tensor | None = None) -> torch.Tensor:
+              bounds: torch.Tensor | None = None, environment: Environment | None = None
+              ) -> torch.Tensor:
     """Fog a lit image: ``T * image + analytic + blur(marched)`` (:func:`fog_terms`).
 
     Args:
         image: ``(B, 3, H, W)`` linear radiance (surfaces and background).
-        distance, eye, rays, fog, lights, shadow_maps, camera_view, bounds: as in
-            :func:`fog_terms`.
+        distance, eye, rays, fog, lights, shadow_maps, camera_view, bounds, environment: as
+            in :func:`fog_terms`.
 
     Returns:
-        ``(B, 3, H, W)`` fogged radiance.
+        ``(B, 3, H, W)`` fogged radiance in ``image``'s dtype (float16 / bfloat16 inputs are
+        fogged in float32 and saturated on output).
 
     Example:
         >>> out = apply_fog(img, dist, eye, view_rays(view, proj, (H, W)), Fog(density=0.2))
     """
     check_tensor("image", image, (rays.shape[0], 3, *rays.shape[-2:]), floating=True)
-    terms = fog_terms(distance, eye, rays, fog, lights, shadow_maps, camera_view, bounds)
+    out_dtype = image.dtype
+    if out_dtype in LOW_PRECISION:  # optical depths and their gradients overflow in half
+        image, distance, eye, rays = (t.float() for t in (image, distance, eye, rays))
+    terms = fog_terms(distance, eye, rays, fog, lights, shadow_maps, camera_view, bounds,
+                      environment)
     marched = depth_aware_blur(terms.marched, distance.clamp_max(fog.max_distance), fog.blur)
-    return image * terms.transmittance + terms.analytic + marched
+    return finish_low_precision(image * terms.transmittance + terms.analytic + marched,
+                                out_dtype)
 
 
 __all__ = ["Fog", "FogTerms", "ambient_inscatter", "apply_fog", "depth_aware_blur",
-           "fog_density", "fog_terms", "fog_transmittance", "hg_phase",
-           "interleaved_gradient_noise", "light_source", "march_inscatter", "marched_lights",
-           "optical_depth"]
+           "directional_inscatter_weight", "fog_density", "fog_terms", "fog_transmittance",
+           "hg_phase", "interleaved_gradient_noise", "light_optical_depth", "light_source",
+           "light_transmittance", "march_inscatter", "marched_lights", "optical_depth",
+           "surface_light_hook"]

@@ -9,6 +9,12 @@ formula with the engine. Imports torch only.
   on ``steps`` samples, ``T`` accumulated from the same samples (and a quadrature of the
   part before ``start``).
 * :func:`hg_phase_reference`: the Henyey-Greenstein phase written out.
+* :func:`light_optical_depth_reference`: the optical depth from points to a light by the
+  midpoint rule: along the segment to a point light, or along the ray towards a directional
+  light up to a finite ``far`` (the caller picks it beyond where the fog has thinned out).
+* :func:`punctual_source_reference`: the in-scattering source of one light at fog samples,
+  ``p_HG(l . v) E T_l`` with ``E = color I`` (directional) or ``color I / d^2`` (point) and
+  ``T_l`` from :func:`light_optical_depth_reference`.
 """
 
 from __future__ import annotations
@@ -74,3 +80,68 @@ def march_reference(eye: torch.Tensor, rays: torch.Tensor, start: torch.Tensor,
         out = out + torch.exp(-tau_mid) * sigma * dt * source(p, valid).to(F64)
         tau = tau + sigma * dt
     return out * albedo.to(F64).view(1, 3, 1, 1) * valid
+
+
+def light_optical_depth_reference(points: torch.Tensor,
+                                  density: Callable[[torch.Tensor], torch.Tensor], *,
+                                  direction: tuple[float, float, float] | None = None,
+                                  position: tuple[float, float, float] | None = None,
+                                  far: float = 1e3, steps: int = 20000) -> torch.Tensor:
+    """Optical depth ``(B, 1, H, W)`` from points ``(B, 3, H, W)`` to one light.
+
+    Give ``position`` (point light: the segment to it) or ``direction`` (directional light:
+    the ray towards ``-direction`` up to ``far`` m). Midpoint rule on ``steps`` samples.
+    """
+    p = points.to(F64)
+    if (direction is None) == (position is None):
+        raise ValueError("give exactly one of direction, position")
+    if position is not None:
+        d = torch.tensor(position, dtype=F64).view(1, 3, 1, 1) - p
+        length = d.norm(dim=1, keepdim=True)
+        dir_y = torch.where(length > 0, d[:, 1:2] / length.clamp_min(1e-300), 0.0)
+    else:
+        l = -torch.tensor(direction, dtype=F64)
+        dir_y = torch.full_like(p[:, 1:2], float(l[1] / l.norm()))
+        length = torch.full_like(dir_y, far)
+    return optical_depth_quadrature(p[:, 1:2], dir_y, length, density, steps=steps)
+
+
+def punctual_source_reference(rays: torch.Tensor, g: float, color_intensity: torch.Tensor,
+                              density: Callable[[torch.Tensor], torch.Tensor], *,
+                              direction: tuple[float, float, float] | None = None,
+                              position: tuple[float, float, float] | None = None,
+                              far: float = 1e3, steps: int = 2048, dimmed: bool = True
+                              ) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+    """``source(p, valid) -> (B, 3, H, W)``: ``p_HG(l . v) E T_l`` of one light (no range
+    window, no cone, no shadows) at fog samples ``p``, for :func:`march_reference`.
+
+    Args:
+        rays: ``(B, 3, H, W)`` unit view directions.
+        g: HG anisotropy.
+        color_intensity: ``(3,)`` colour times intensity (lux, or candela for a point light).
+        density: ``sigma_t(y)``.
+        direction / position: the light (as in :func:`light_optical_depth_reference`).
+        far, steps: the light-path quadrature.
+        dimmed: False: ``T_l = 1``.
+    """
+    ci = color_intensity.to(F64).view(1, 3, 1, 1)
+    v = rays.to(F64)
+
+    def source(p: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        p = p.to(F64)
+        if position is not None:
+            d = torch.tensor(position, dtype=F64).view(1, 3, 1, 1) - p
+            d2 = (d * d).sum(1, keepdim=True)
+            l, e = d / d2.sqrt(), ci / d2
+        else:
+            l = -torch.tensor(direction, dtype=F64)
+            l = (l / l.norm()).view(1, 3, 1, 1)
+            e = ci
+        cos = (l * v).sum(1, keepdim=True)
+        t = torch.ones_like(cos)
+        if dimmed:
+            t = torch.exp(-light_optical_depth_reference(
+                p, density, direction=direction, position=position, far=far, steps=steps))
+        return hg_phase_reference(cos, g) * e * t
+
+    return source
