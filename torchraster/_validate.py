@@ -6,6 +6,8 @@ sees a traceback from deep inside torch for a wrong shape, dtype or value.
 
 from __future__ import annotations
 
+import math
+import operator
 import os
 from collections.abc import Sequence
 
@@ -31,6 +33,8 @@ def check_tensor(
     """
     if not isinstance(value, torch.Tensor):
         raise TypeError(f"{name}: expected a torch.Tensor, got {type(value).__name__}")
+    if finite:  # reading the values: a meta tensor has none
+        check_has_data(name, value)
     want = "(" + ", ".join("?" if s is None else str(s) for s in shape) + ")"
     if value.dim() != len(shape):
         raise ValueError(f"{name}: expected shape {want}, got {tuple(value.shape)}")
@@ -41,6 +45,9 @@ def check_tensor(
             )
     if floating and not value.is_floating_point():
         raise TypeError(f"{name}: expected a floating-point tensor, got {value.dtype}")
+    if floating and value.dtype not in FLOAT_DTYPES:
+        raise TypeError(f"{name}: dtype {value.dtype} is not supported; expected one of "
+                        "float32, float64, float16, bfloat16")
     if integer and (value.is_floating_point() or value.is_complex() or value.dtype == torch.bool):
         raise TypeError(f"{name}: expected an integer tensor, got {value.dtype}")
     if finite and value.is_floating_point() and value.numel() and not bool(
@@ -49,6 +56,70 @@ def check_tensor(
         bad = int((~torch.isfinite(value)).sum())
         raise ValueError(f"{name}: contains {bad} NaN/Inf value(s); all values must be finite")
     return value
+
+
+#: Floating dtypes the engine computes in (float16 / bfloat16 are evaluated in float32).
+FLOAT_DTYPES = (torch.float32, torch.float64, torch.float16, torch.bfloat16)
+
+
+def check_has_data(name: str, value: torch.Tensor) -> torch.Tensor:
+    """Refuse a ``'meta'`` tensor (shape only, no values) where values are read, with an
+    error naming ``name`` instead of torch's "cannot be called on meta tensors"."""
+    if value.device.type == "meta":
+        raise ValueError(f"{name}: a 'meta' tensor holds no data; expected a tensor on a real "
+                         "device (cpu, cuda, ...)")
+    return value
+
+
+def check_bool(name: str, value: object) -> bool:
+    """``value`` if it is a bool (Python or numpy), else a TypeError naming ``name``.
+
+    Truthiness is not accepted: ``"no"``, ``None``, ``0.5`` or a tensor are errors, not
+    silently ``True`` / ``False``.
+    """
+    if isinstance(value, bool) or type(value).__name__ == "bool_":  # numpy.bool_
+        return bool(value)
+    raise TypeError(f"{name}: expected True or False, got {value!r}")
+
+
+def check_int(name: str, value: object, lo: int, hi: int | None = None) -> int:
+    """``value`` as an int in ``[lo, hi]`` (``hi`` None: no upper bound), else a ValueError
+    naming ``name``. Bools are not counts and floats are not ints (``2.0`` is refused)."""
+    try:
+        n = None if isinstance(value, bool) else operator.index(value)  # type: ignore[arg-type]
+    except TypeError:
+        n = None
+    if n is None or n < lo or (hi is not None and n > hi):
+        want = f"an int in [{lo}, {hi}]" if hi is not None else f"an int >= {lo}"
+        raise ValueError(f"{name}: expected {want}, got {value!r}")
+    return n
+
+
+def check_float(name: str, value: object, lo: float = -math.inf, hi: float = math.inf, *,
+                lo_open: bool = False, hi_open: bool = False,
+                finite: bool = True) -> float:
+    """``value`` as a float in the interval from ``lo`` to ``hi`` (each end closed unless
+    ``lo_open`` / ``hi_open``), else a ValueError naming ``name``.
+
+    NaN is always refused; +-inf only when ``finite`` is False (and the interval holds it).
+    Bools and strings are refused; 0-d tensors and numpy scalars are not numbers here either.
+    """
+    ok = isinstance(value, int | float) and not isinstance(value, bool)
+    v = float(value) if ok else math.nan  # type: ignore[arg-type]
+    ok = ok and not math.isnan(v) and (not finite or math.isfinite(v))
+    ok = ok and (lo < v if lo_open else lo <= v) and (v < hi if hi_open else v <= hi)
+    if not ok:
+        kind = "a finite number" if finite else "a number"
+        if math.isinf(hi) and math.isinf(lo):
+            where = ""
+        elif math.isinf(hi):
+            where = f" {'>' if lo_open else '>='} {lo:g}"
+        elif math.isinf(lo):
+            where = f" {'<' if hi_open else '<='} {hi:g}"
+        else:
+            where = f" in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+        raise ValueError(f"{name}: expected {kind}{where}, got {value!r}")
+    return v
 
 
 def check_radiance(name: str, value: torch.Tensor) -> torch.Tensor:

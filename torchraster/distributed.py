@@ -22,6 +22,7 @@ the manifest.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import itertools
@@ -30,8 +31,9 @@ import os
 import sys
 import time
 import traceback
+import warnings
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -156,6 +158,21 @@ class GlobalProgress:
     def write(self, text: str) -> None:
         """Print a line without breaking the bar (any rank)."""
         self.bar.write(text, file=sys.stderr)
+
+    @contextlib.contextmanager
+    def redirect_output(self) -> Iterator[None]:
+        """Within the block, log records of the root logger's console handlers and Python
+        warnings are printed through :meth:`write` (tqdm's ``write``: the bar is cleared,
+        the line printed, the bar redrawn), never onto the bar's line."""
+        from tqdm.contrib.logging import logging_redirect_tqdm
+
+        def show(message, category, filename, lineno, file=None, line=None):  # noqa: ANN001
+            self.write(warnings.formatwarning(message, category, filename, lineno,
+                                              line).rstrip("\n"))
+
+        with logging_redirect_tqdm(), warnings.catch_warnings():
+            warnings.showwarning = show
+            yield
 
     def step(self) -> None:
         """One more view of this rank is finished (written or failed)."""
@@ -314,12 +331,13 @@ def render_dataset(configs: list[DatasetConfig], out_dir: str | Path, *,
     reported: set = set()
     shard = manifest.ShardWriter(out_dir)
     try:  # one object at a time: its scene loads once for its consecutive views
-        for (ci, oi), grouped in itertools.groupby((jobs[i] for i in mine),
-                                                   key=lambda j: (j.config, j.obj)):
-            w, f = _render_group(list(grouped), configs[ci], plans[ci][oi], out_dir, device,
-                                 world, shard, bar, say, prefix, verbose, show_traceback,
-                                 reported)
-            written, failed = written + w, failed + f
+        with bar.redirect_output():  # warnings above the bar, not onto its line
+            for (ci, oi), grouped in itertools.groupby((jobs[i] for i in mine),
+                                                       key=lambda j: (j.config, j.obj)):
+                w, f = _render_group(list(grouped), configs[ci], plans[ci][oi], out_dir,
+                                     device, world, shard, bar, say, prefix, verbose,
+                                     show_traceback, reported)
+                written, failed = written + w, failed + f
     finally:
         shard.close()
     bar.finish()

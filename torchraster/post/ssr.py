@@ -75,7 +75,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .._validate import check_tensor
+from .._validate import check_bool, check_float, check_tensor
 from ..numerics import compute_dtype, safe_normalize, smoothstep, specular_f0
 from ..shading.ibl import MIN_N_DOT_V, Environment, dfg_lut, lookup_dfg, shade_ibl
 from ..texture import build_mip_pyramid
@@ -551,18 +551,16 @@ class SSR(nn.Module):
         super().__init__()
         max_steps = _check_steps("max_steps", max_steps, 1, MAX_STEPS)
         refine_steps = _check_steps("refine_steps", refine_steps, 0, MAX_REFINE_STEPS)
-        for name, val, lo in (("thickness", thickness, 0.0), ("max_distance", max_distance,
-                                                               0.0)):
-            if not (isinstance(val, int | float) and val > lo) or math.isnan(val):
-                raise ValueError(f"{name}: expected a float > 0, got {val!r}")
-        if not (isinstance(max_roughness, int | float) and 0 < max_roughness <= 1):
-            raise ValueError(f"max_roughness: expected a float in (0, 1], got {max_roughness!r}")
-        if not (isinstance(edge_fade, int | float) and 0 <= edge_fade <= 0.5):
-            raise ValueError(f"edge_fade: expected a float in [0, 0.5], got {edge_fade!r}")
         self.max_steps, self.refine_steps = max_steps, refine_steps
-        self.thickness, self.max_distance = float(thickness), float(max_distance)
-        self.max_roughness, self.edge_fade = float(max_roughness), float(edge_fade)
-        self.blur, self.enabled = bool(blur), bool(enabled)
+        # thickness must be finite (inf: every ray behind a surface hits it); max_distance
+        # may be inf (= up to the frame's depth range)
+        self.thickness = check_float("thickness", thickness, 0.0, lo_open=True)
+        self.max_distance = check_float("max_distance", max_distance, 0.0, lo_open=True,
+                                        finite=False)
+        self.max_roughness = check_float("max_roughness", max_roughness, 0.0, 1.0,
+                                         lo_open=True)
+        self.edge_fade = check_float("edge_fade", edge_fade, 0.0, 0.5)
+        self.blur, self.enabled = check_bool("blur", blur), check_bool("enabled", enabled)
 
     def forward(
         self,

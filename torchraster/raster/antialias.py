@@ -234,9 +234,13 @@ def _check_inputs(color, frags, clip_pos, faces, topology):
     if not hasattr(frags, "face_id") or not hasattr(frags, "depth"):
         raise TypeError(f"frags: expected Fragments from rasterize, got {type(frags).__name__}")
     fid = frags.face_id
+    check_tensor("color", color, ("B", "C", "H", "W"), floating=True)
     check_tensor("frags.face_id", fid, ("B", "H", "W"), integer=True)
     b, h, w = fid.shape
-    check_tensor("color", color, (b, None, h, w), floating=True)
+    if (color.shape[0], *color.shape[2:]) != (b, h, w):
+        raise ValueError(f"frags: fragments of (B, H, W) = {(b, h, w)} do not match color "
+                         f"{tuple(color.shape)} (B, C, H, W); rasterize at the colour's "
+                         "resolution and batch size")
     check_tensor("clip_pos", clip_pos, (None, "V", 4), floating=True)
     check_tensor("faces", faces, ("F", 3), integer=True)
     if clip_pos.shape[0] not in (1, b):

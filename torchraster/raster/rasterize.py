@@ -19,12 +19,13 @@ The soft rasterizer (``soft.py``) reuses pass 1 with a wider :class:`Coverage`.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator
 
 import torch
 
 from .. import frame_pool
-from .._validate import check_frame_memory, check_resolution, check_tensor
+from .._validate import check_frame_memory, check_has_data, check_resolution, check_tensor
 from ..numerics import floor_div_exact, take_columns
 from .binning import (
     DZDX,
@@ -286,11 +287,18 @@ def rasterize_depth(
 _DEPTH_BYTES_PER_PIXEL = 16
 
 
+#: Most depth layers of one rasterize call (each layer is one more pass over the candidates
+#: and one more set of frame buffers; depth peeling deeper than this is not a rasterizer job).
+MAX_LAYERS: int = 64
+
+
 def check_layers(layers: int, name: str = "layers") -> int:
-    """``layers`` as a positive int, or a ValueError naming the argument ``name``."""
-    if isinstance(layers, bool) or not isinstance(layers, (int, float)) or (
-            int(layers) != layers or layers < 1):
-        raise ValueError(f"{name}: expected a positive int, got {layers!r}")
+    """``layers`` as an int in ``[1, MAX_LAYERS]`` (an integral float such as 2.0 is taken;
+    bools, NaN, inf and huge counts are not), or a ValueError naming the argument ``name``."""
+    ok = isinstance(layers, (int, float)) and not isinstance(layers, bool) and (
+        math.isfinite(layers) and int(layers) == layers and 1 <= layers <= MAX_LAYERS)
+    if not ok:
+        raise ValueError(f"{name}: expected an int in [1, {MAX_LAYERS}], got {layers!r}")
     return int(layers)
 
 
@@ -554,8 +562,8 @@ def check_inputs(clip_pos, faces, resolution, face_ranges):
     """Checked inputs of :func:`rasterize`: (clip_pos, faces (int64 on clip_pos's device),
     (H, W), face_ranges or None), or an error naming the bad argument."""
     h, w = check_resolution(resolution)
-    check_tensor("clip_pos", clip_pos, ("B", "V", 4), floating=True)
-    check_tensor("faces", faces, ("F", 3), integer=True)
+    check_has_data("clip_pos", check_tensor("clip_pos", clip_pos, ("B", "V", 4), floating=True))
+    check_has_data("faces", check_tensor("faces", faces, ("F", 3), integer=True))
     if clip_pos.shape[0] == 0:
         raise ValueError("clip_pos: batch size must be at least 1")
     faces = faces.to(device=clip_pos.device, dtype=torch.int64)

@@ -109,6 +109,24 @@ def _alpha(roughness: torch.Tensor) -> torch.Tensor:
     return r * r
 
 
+def ggx_lobe(n_dot_h: torch.Tensor, alpha: torch.Tensor, alpha2: torch.Tensor) -> torch.Tensor:
+    """``pi D_GGX``: the GGX distribution without its ``1 / pi`` (the one GGX kernel of
+    :func:`d_ggx` and the fused lighting pass). ``k = alpha / (1 - c^2 + (c alpha)^2)``,
+    ``c = clamp(n.h, 0, 1)``, result ``k^2``, 0 where ``n.h <= 0`` (Filament eq. 4).
+    ``alpha2 = alpha^2`` is passed in (callers reuse it); broadcastable tensors."""
+    c2 = n_dot_h.clamp(0.0, 1.0).square()
+    k = alpha / torch.addcmul(torch.ones_like(c2), c2, alpha2 - 1.0)  # 1 - c^2 + (c a)^2
+    return k * k * (n_dot_h > 0)
+
+
+def schlick_weight(cos: torch.Tensor) -> torch.Tensor:
+    """Schlick's ``(1 - cos)^5`` with ``cos`` clamped to [0, 1] (the Fresnel weight of
+    :func:`f_schlick`: ``F = f0 + (f90 - f0) schlick_weight(v.h)``)."""
+    m = 1.0 - cos.clamp(0.0, 1.0)
+    m2 = m * m
+    return m2 * m2 * m
+
+
 def d_ggx(n_dot_h: torch.Tensor, roughness: Scalar) -> torch.Tensor:
     """GGX / Trowbridge-Reitz normal distribution D(h) (Filament eq. 4, Walter et al. 2007).
 
@@ -131,10 +149,7 @@ def d_ggx(n_dot_h: torch.Tensor, roughness: Scalar) -> torch.Tensor:
     dt = compute_dtype(n_dot_h, roughness)
     nh = n_dot_h.to(dt)
     a = _alpha(_as_tensor("roughness", roughness, nh, dt))
-    c = nh.clamp(0.0, 1.0)
-    k = a / (1.0 - c * c + (c * a) ** 2)
-    d = k * k / math.pi
-    return finish_low_precision(torch.where(nh > 0, d, 0.0), out)
+    return finish_low_precision(ggx_lobe(nh, a, a * a) / math.pi, out)
 
 
 def v_smith_ggx_correlated(
@@ -184,9 +199,7 @@ def f_schlick(v_dot_h: torch.Tensor, f0: Scalar, f90: Scalar = 1.0) -> torch.Ten
     vh = v_dot_h.to(dt)
     f0t = _as_tensor("f0", f0, vh, dt)
     f90t = _as_tensor("f90", f90, vh, dt)
-    m = 1.0 - vh.clamp(0.0, 1.0)
-    m2 = m * m
-    return finish_low_precision(f0t + (f90t - f0t) * (m2 * m2 * m), out)
+    return finish_low_precision(f0t + (f90t - f0t) * schlick_weight(vh), out)
 
 
 def fd_lambert() -> float:

@@ -62,7 +62,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from torchraster._validate import check_tensor
+from torchraster._validate import check_float, check_int, check_tensor
 from torchraster.numerics import compute_dtype, safe_normalize
 from torchraster.raster import rasterize, rasterize_depth
 
@@ -76,6 +76,24 @@ SHADOW_MEMORY_BUDGET: int = 256 * 2**20
 TAP_CHUNK_ELEMENTS: int = 2**22
 #: Largest tan(angle) between normal and light used by the slope-scaled bias (~84 deg).
 MAX_SLOPE: float = 10.0
+#: Largest shadow-map side: one 8192^2 float32 view is the whole SHADOW_MEMORY_BUDGET.
+MAX_MAP_SIZE: int = 8192
+#: Most cascades of a directional light.
+MAX_CASCADES: int = 4
+#: Most PCF / PCSS taps.
+MAX_PCF_TAPS: int = 256
+#: The integer fields of :class:`ShadowSettings` (bools are refused for them).
+SHADOW_INT_FIELDS = ("map_size", "pcf_taps", "cascades")
+#: Closed bounds ``(lo, hi)`` of every numeric :class:`ShadowSettings` field: the one source
+#: of the limits that ``ShadowSettings`` checks and the YAML schema (``ShadowConfig``) states.
+SHADOW_BOUNDS: dict[str, tuple[float, float]] = {
+    "map_size": (8, MAX_MAP_SIZE), "pcf_taps": (1, MAX_PCF_TAPS),
+    "cascades": (1, MAX_CASCADES), "pcf_radius": (0, 64), "bias": (0, 1e3),
+    "slope_bias": (0, 1e3), "normal_bias": (0, 1e3), "intensity": (0, 1),
+    "split_lambda": (0, 1), "cascade_blend": (0, 0.5), "light_size": (0, 1e6),
+    "max_penumbra": (0.5, 64), "vsm_blur": (0, 64), "vsm_bleed": (0, 0.99),
+    "vsm_min_variance": (0, 1),
+}
 
 
 @dataclass(frozen=True)
@@ -129,30 +147,18 @@ class ShadowSettings:
             raise ValueError(f"ShadowSettings.{name}: expected {expected}, got "
                              f"{getattr(self, name)!r}")
 
-        if not isinstance(self.map_size, int) or not 8 <= self.map_size <= 16384:
-            bad("map_size", "an int in [8, 16384]")
+        for name, (lo, hi) in SHADOW_BOUNDS.items():
+            prefixed = f"ShadowSettings.{name}"
+            if name in SHADOW_INT_FIELDS:
+                object.__setattr__(self, name, check_int(prefixed, getattr(self, name), lo, hi))
+            else:
+                check_float(prefixed, getattr(self, name), lo, hi)
         if self.filter not in FILTERS:
             bad("filter", f"one of {FILTERS}")
         if self.pcf_pattern not in PATTERNS:
             bad("pcf_pattern", f"one of {PATTERNS}")
-        if not isinstance(self.pcf_taps, int) or not 1 <= self.pcf_taps <= 256:
-            bad("pcf_taps", "an int in [1, 256]")
-        if not isinstance(self.cascades, int) or not 1 <= self.cascades <= 4:
-            bad("cascades", "an int in [1, 4]")
-        for name, lo, hi in (("pcf_radius", 0, 64), ("bias", 0, 1e3), ("slope_bias", 0, 1e3),
-                             ("normal_bias", 0, 1e3), ("intensity", 0, 1),
-                             ("split_lambda", 0, 1), ("cascade_blend", 0, 0.5),
-                             ("light_size", 0, 1e6), ("max_penumbra", 0.5, 64),
-                             ("vsm_blur", 0, 64), ("vsm_bleed", 0, 0.99),
-                             ("vsm_min_variance", 0, 1)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (
-                    lo <= v <= hi and math.isfinite(v)):
-                bad(name, f"a number in [{lo}, {hi}]")
-        if self.max_distance is not None and not (
-                isinstance(self.max_distance, (int, float)) and self.max_distance > 0
-                and math.isfinite(self.max_distance)):
-            bad("max_distance", "a positive finite number or None")
+        if self.max_distance is not None:
+            check_float("ShadowSettings.max_distance", self.max_distance, 0.0, lo_open=True)
 
 
 @dataclass
