@@ -50,7 +50,8 @@ zero-area triangle), rendered forward and backward through ``tr.Renderer``:
   (sometimes straight down) and a spot light casting shadows with every filter, every
   texture filter, antialiasing on or off.
 Any kind may also draw screen-space reflections, fog with light shafts (densities 0 to 50,
-height falloffs 0 to 20), a dissolve (threshold 0, 0.3 or 1) and the multiscatter switch.
+height falloffs 0 to 20, light path on or off), a dissolve (threshold 0, 0.3 or 1) and the
+multiscatter switch.
 For every render: NaN/Inf in the image, alpha and every float G-buffer channel, and in the
 gradients of a random loss with respect to vertex positions, material parameters, light
 parameters and the environment. A ``ValueError``/``TypeError`` is counted apart (the clear
@@ -554,6 +555,10 @@ def _nonfinite(t: torch.Tensor | None) -> int:
     return int((~torch.isfinite(t)).sum())
 
 
+#: Channels that need no other frame.
+ONE_FRAME_CHANNELS = tuple(ch for ch in tr.CHANNELS if not ch.startswith("flow")
+                           and ch != "motion")
+
 def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
     """One hostile render forward and backward (see the module docstring for the kinds)."""
     if kind == "half":
@@ -598,7 +603,8 @@ def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
     # the optional passes: screen-space reflections, fog with light shafts, dissolve
     ssr = tr.post.SSR(max_steps=_randint(gen, 4, 32)) if _chance(gen, 0.15) else None
     fog = tr.Fog(density=_pick(gen, (0.0, 1e-3, 0.3, 50.0)), height_falloff=_pick(
-        gen, (0.0, 1e-6, 0.5, 20.0)), steps=_randint(gen, 1, 8)) if _chance(gen, 0.15) else None
+        gen, (0.0, 1e-6, 0.5, 20.0)), steps=_randint(gen, 1, 8),
+        light_transmittance=_chance(gen, 0.8)) if _chance(gen, 0.15) else None
     dissolve = tr.Dissolve(threshold=_pick(gen, (0.0, 0.3, 1.0))) if _chance(gen, 0.1) else None
     renderer = tr.Renderer(
         res, shading=shading,
@@ -606,7 +612,8 @@ def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
         texture_filter=_pick(gen, ("trilinear", "bilinear", "nearest", "anisotropic")),
         ssao=ssao, ssr=ssr, fog=fog, dissolve=dissolve, multiscatter=_chance(gen, 0.8),
         environment_background=_chance(gen, 0.5))
-    out = renderer(scene, view, proj, lights, env, channels=tr.CHANNELS)
+    # every channel of one frame (the flow channels need another: the motion kind draws them)
+    out = renderer(scene, view, proj, lights, env, channels=ONE_FRAME_CHANNELS)
     c["covered"] += int((out.alpha > 0).sum())
     c["nonfinite_image"] += _nonfinite(out.image)
     c["nonfinite_alpha"] += _nonfinite(out.alpha)
@@ -663,7 +670,10 @@ def scene_half(gen: torch.Generator, c: Counter) -> None:
         map_size=_pick(gen, (32, 128)), filter=_pick(gen, tr.shading.shadows.FILTERS))
     renderer = tr.Renderer(res, antialias=_chance(gen, 0.5), shadow_settings=settings,
                            texture_filter=_pick(gen, ("trilinear", "bilinear", "nearest",
-                                                      "anisotropic")))
+                                                      "anisotropic")),
+                           max_batch=_pick(gen, (None, 1)))  # chunked batches too
+    if renderer.max_batch is not None:  # two views, rendered one at a time
+        view = torch.cat([view, view])
     out = renderer(scene, view, proj, lights)
     c["covered"] += int((out.alpha > 0).sum())
     c["nonfinite_image"] += _nonfinite(out.image)

@@ -21,6 +21,8 @@ does).
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import logging
 import warnings
 from collections.abc import Iterable, Iterator, Mapping, Sequence
@@ -30,8 +32,9 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 from torch import nn
+from torch.utils.checkpoint import checkpoint
 
-from ._validate import check_resolution, check_tensor
+from ._validate import check_bool, check_int, check_resolution, check_tensor
 from .anisotropic import check_max_anisotropy
 from .background import FITS, fit_background
 from .dissolve import Dissolve
@@ -65,7 +68,7 @@ from .shading.shadows import (
     render_shadow_maps,
     shadow_visibility,
 )
-from .shading.volumetric import Fog, apply_fog
+from .shading.volumetric import Fog, apply_fog, surface_light_hook
 from .transparency import (
     composite_over,
     face_alpha_modes,
@@ -153,6 +156,9 @@ class RenderPlan:
         motion: the steps of the motion pass (:mod:`~torchraster.motion`), one per
             requested channel: ``"flow forward"``, ``"flow forward valid"``,
             ``"flow backward"``, ``"flow backward valid"``, ``"motion vectors"``.
+        chunks: the batch sizes of the consecutive calls a batch larger than
+            ``Renderer(max_batch=...)`` was split into, filled in by ``forward``
+            (step ``"batch B in K chunks of <= max_batch"``); empty when it ran in one call.
 
     Iterating a plan yields its human-readable :attr:`steps`.
     """
@@ -181,6 +187,7 @@ class RenderPlan:
     ssr: bool = False
     amodal: int = 0
     motion: tuple[str, ...] = ()
+    chunks: tuple[int, ...] = ()
 
     @property
     def steps(self) -> list[str]:
@@ -189,6 +196,9 @@ class RenderPlan:
         layers = f" {self.layers} layers" if self.layers > 1 else ""
         steps = [f"rasterize {self.resolution[0]}x{self.resolution[1]}{layers}{cull}",
                  "gbuffer " + ",".join(sorted(self.channels))]
+        if self.chunks:
+            steps.insert(0, f"batch {sum(self.chunks)} in {len(self.chunks)} chunks of "
+                            f"<= {max(self.chunks)}")
         if self.amodal:
             steps.append(f"amodal {self.amodal} objects")
         steps += list(self.motion)
@@ -366,6 +376,17 @@ class Renderer(nn.Module):
             a seeded noise of their world position falls below its threshold (cut out like
             glTF ``MASK``, ``alpha_layers`` deep) and glow in a band above it; the glow is
             differentiable in the threshold.
+        max_batch: render at most this many batch items at once (None: the whole batch).
+            A larger batch is split into consecutive chunks whose outputs are concatenated:
+            the same images, alpha and G-buffer channels bit for bit, and memory that
+            grows with ``max_batch`` instead of the batch (docs/benchmarks.md, section
+            memory). With autograd on, each chunk is recomputed in backward
+            (``torch.utils.checkpoint``), so the graph holds the chunks' inputs and
+            outputs only (backward then costs one more forward). Every per-item input is
+            sliced (cameras, per-item positions and vertex data, ``face_ranges``, lights
+            and other frames of batch B, a ``(B, 3, h, w)`` background image, a ``(B,)``
+            dissolve threshold); an environment with per-item radiance, rotation or
+            intensity raises NotImplementedError. ``out.plan.chunks`` reports the split.
 
     Example:
         >>> renderer = Renderer(256, shading="headlight")
@@ -396,6 +417,7 @@ class Renderer(nn.Module):
         fog: Fog | None = None,
         multiscatter: bool = True,
         dissolve: Dissolve | None = None,
+        max_batch: int | None = None,
     ) -> None:
         super().__init__()
         self.resolution = check_resolution(resolution)
@@ -407,8 +429,7 @@ class Renderer(nn.Module):
         self.shading_options = dict(shading_options or {})
         self.model = (get_model(LIT_MODELS[shading], **self.shading_options)
                       if shading in LIT_MODELS else None)
-        if isinstance(supersample, bool) or not isinstance(supersample, int) or supersample < 1:
-            raise ValueError(f"supersample: expected an int >= 1, got {supersample!r}")
+        supersample = check_int("supersample", supersample, 1)
         if texture_filter not in TEXTURE_FILTERS:
             raise ValueError(f"texture_filter: expected one of {TEXTURE_FILTERS}, got "
                              f"{texture_filter!r}")
@@ -421,9 +442,10 @@ class Renderer(nn.Module):
                              f"got {background!r}")
         self.shading = shading
         self.supersample = supersample
-        self.cull_backfaces = bool(cull_backfaces)
+        self.cull_backfaces = check_bool("cull_backfaces", cull_backfaces)
         self.register_buffer("background", bg, persistent=False)
-        self.environment_background = bool(environment_background)
+        self.environment_background = check_bool("environment_background",
+                                                 environment_background)
         if background_fit not in FITS:
             raise ValueError(f"background_fit: expected one of {FITS}, got {background_fit!r}")
         if background_image is not None:
@@ -438,26 +460,27 @@ class Renderer(nn.Module):
         if self.max_anisotropy != 16 and texture_filter != "anisotropic":
             raise ValueError(f"max_anisotropy: used by texture_filter='anisotropic' only; "
                              f"texture_filter is {texture_filter!r}")
+        for name, module in (("ssao", ssao), ("ssr", ssr)):
+            if module is not None and not isinstance(module, nn.Module):
+                raise TypeError(f"{name}: expected a torchraster.post.{name.upper()} module or "
+                                f"None, got {type(module).__name__}")
         self.ssao = ssao if ssao is not None and getattr(ssao, "enabled", True) else None
         self.ssr = ssr if ssr is not None and getattr(ssr, "enabled", True) else None
-        self.mip_cache = MipCache(mip_cache_bytes)
+        self.mip_cache = MipCache(check_int("mip_cache_bytes", mip_cache_bytes, 0))
         if shadow_settings is not None and not isinstance(shadow_settings, ShadowSettings):
             raise TypeError(f"shadow_settings: expected a ShadowSettings or None, got "
                             f"{type(shadow_settings).__name__}")
-        self.shadows = bool(shadows)
+        self.shadows = check_bool("shadows", shadows)
         self.shadow_settings = shadow_settings or ShadowSettings()
         # depth maps of static casters and lights reused across calls (None: off)
         self.shadow_cache: ShadowMapCache | None = ShadowMapCache()
-        if isinstance(alpha_layers, bool) or not isinstance(alpha_layers, int) or not (
-                1 <= alpha_layers <= 16):
-            raise ValueError(f"alpha_layers: expected an int in [1, 16], got {alpha_layers!r}")
-        self.alpha_layers = alpha_layers
-        self.antialias = bool(antialias)
+        self.alpha_layers = check_int("alpha_layers", alpha_layers, 1, 16)
+        self.antialias = check_bool("antialias", antialias)
         if fog is not None and not isinstance(fog, Fog):
             raise TypeError(f"fog: expected a torchraster.shading.volumetric.Fog or None, got "
                             f"{type(fog).__name__}")
         self.fog = fog
-        self.multiscatter = bool(multiscatter)
+        self.multiscatter = check_bool("multiscatter", multiscatter)
         if not self.multiscatter and shading != "pbr":
             raise ValueError(f"multiscatter: the energy terms of pbr shading; shading is "
                              f"{shading!r}, which has none to switch off")
@@ -465,6 +488,7 @@ class Renderer(nn.Module):
             raise TypeError(f"dissolve: expected a torchraster.dissolve.Dissolve or None, got "
                             f"{type(dissolve).__name__}")
         self.dissolve = dissolve
+        self.max_batch = None if max_batch is None else check_int("max_batch", max_batch, 1)
 
     def plan(self, scene: RenderScene, lights: Lights | None = None,
              environment: Environment | None = None, channels: Iterable[str] = ()
@@ -526,7 +550,8 @@ class Renderer(nn.Module):
         if shading in LIT_MODELS and lights is not None and self.shadows:
             shadow_lights = self._plan_shadows(scene, lights)
         fog = () if self.fog is None else self._plan_fog(
-            lights if shading in LIT_MODELS else None, shadow_lights)
+            lights if shading in LIT_MODELS else None, shadow_lights,
+            shading in LIT_MODELS and environment is not None)
         return RenderPlan(
             resolution=(self.resolution[0] * s, self.resolution[1] * s), supersample=s,
             channels=frozenset(channels), requested=frozenset(requested), shading=shading,
@@ -572,18 +597,22 @@ class Renderer(nn.Module):
         return f"dissolve t={t} edge {d.edge_width:g}"
 
     def _plan_fog(self, lights: Lights | None,
-                  shadow_lights: tuple[tuple[str, tuple[int, ...], ShadowSettings], ...]
-                  ) -> tuple[str, ...]:
+                  shadow_lights: tuple[tuple[str, tuple[int, ...], ShadowSettings], ...],
+                  environment: bool = False) -> tuple[str, ...]:
         """The steps of the fog pass: analytic in-scattering (ambient, unshadowed
         directional lights), the march (point / spot lights, shadowed directional lights:
-        light shafts) and its blur."""
+        light shafts) and its blur; then the lights dimmed by the fog on their way in."""
         fog = self.fog
         analytic, marched = ["ambient"] if lights is not None and lights.ambient is not None \
             else [], []
+        if environment:
+            analytic.append("environment")
         shadowed = {(kind, i) for kind, ids, _ in shadow_lights for i in ids}
+        dimmed = []
         for kind in ("directional", "point", "spot"):
             part = None if lights is None else getattr(lights, kind)
             for i in range(0 if part is None else part.count):
+                dimmed.append(f"{kind}[{i}]")
                 if (kind, i) in shadowed:
                     marched.append(f"{kind}[{i}] shadowed")
                 elif kind == "directional":
@@ -596,6 +625,8 @@ class Renderer(nn.Module):
             steps.append(f"fog march {fog.steps} steps{jitter}: {', '.join(marched)}")
             if fog.blur > 0:
                 steps.append(f"fog blur {fog.blur:g} px")
+        if fog.light_transmittance and dimmed:
+            steps.append(f"fog light path: {', '.join(dimmed)}")
         return tuple(steps)
 
     def _plan_shadows(self, scene: RenderScene, lights: Lights
@@ -664,6 +695,9 @@ class Renderer(nn.Module):
                                  "(use 1 to share)")
         for name, frame in frames.items():
             frame.check_against(name, positions.shape[-2], b)
+        if self.max_batch is not None and b > self.max_batch:
+            return self._forward_chunks(scene, view, proj, lights, environment, channels,
+                                        frames, b)
         view, proj = view.expand(b, 4, 4), proj.expand(b, 4, 4)
         clip = transform_points(positions, (proj @ view).to(positions.dtype))
         if clip.shape[0] != b:
@@ -698,6 +732,8 @@ class Renderer(nn.Module):
                         glow: torch.Tensor | None = None) -> torch.Tensor:
             hook = None if groups is None else self._shadow_hook(groups, lights_b, scene, gb,
                                                                  face_id, view, b)
+            if plan.fog and lights is not None and self.fog.light_transmittance:
+                hook = surface_light_hook(self.fog, lights, gb.position, gb.mask, hook)
             rad = self._shade(plan, gb, view, proj, eye, lights, environment, hook)
             if glow is not None:  # the dissolve's glowing band (0 where discarded)
                 rad = rad + glow.to(rad)
@@ -758,7 +794,7 @@ class Renderer(nn.Module):
         image = radiance + transmittance * background
         if plan.fog:
             image = self._apply_fog(plan, image, gb, view, proj, eye, lights, groups, scene,
-                                    face_ranges, b)
+                                    face_ranges, b, environment if plan.ibl else None)
         if plan.alpha != "none":
             alpha = 1 - transmittance
         else:
@@ -775,6 +811,58 @@ class Renderer(nn.Module):
             image, alpha = F.avg_pool2d(image, s), F.avg_pool2d(alpha, s)
             outputs = outputs.downsample(s)
         return RenderOutput(image=image, alpha=alpha, gbuffer=outputs.as_dict(), plan=plan)
+
+    def _forward_chunks(self, scene: RenderScene, view: torch.Tensor, proj: torch.Tensor,
+                        lights: Lights | None, environment: Environment | None,
+                        channels: Iterable[str], frames: dict[str, OtherFrame], b: int
+                        ) -> RenderOutput:
+        """``forward`` of a batch of ``b > max_batch`` items: consecutive chunks of at most
+        ``max_batch`` items, every per-item input sliced alike, outputs concatenated (with
+        autograd on, each chunk checkpointed)."""
+        if environment is not None and _environment_per_item(environment):
+            raise NotImplementedError(
+                "max_batch: an Environment with per-item radiance, rotation or intensity "
+                "cannot be split into chunks yet; use max_batch=None or a shared environment")
+        outs: list[RenderOutput] = []
+        for start in range(0, b, self.max_batch):
+            sl = slice(start, min(start + self.max_batch, b))
+            # one renderer per chunk (a checkpointed chunk reruns it in backward): it shares
+            # the modules, buffers and caches, holds the chunk's items and splits no further
+            inner = copy.copy(self)
+            inner.max_batch = None
+            if self.background_image is not None and self.background_image.shape[0] == b:
+                inner.background_image = self.background_image[sl]
+            threshold = None if self.dissolve is None else self.dissolve.threshold
+            if isinstance(threshold, torch.Tensor) and threshold.numel() == b > 1:
+                inner.dissolve = replace(self.dissolve, threshold=threshold.reshape(-1)[sl])
+            args = (_scene_items(scene, sl, b), _items(view, sl, b), _items(proj, sl, b),
+                    _lights_items(lights, sl, b), environment, channels)
+            kwargs = {name: OtherFrame(_items(f.positions, sl, b, 3), _items(f.view, sl, b, 3),
+                                       _items(f.proj, sl, b, 3)) for name, f in frames.items()}
+            if torch.is_grad_enabled():  # keep only the chunk's outputs; recompute in backward
+                plans: list[RenderPlan] = []
+                names: list[str] = []
+
+                def run(*_, inner=inner, args=args, kwargs=kwargs, plans=plans, names=names):
+                    out = inner.forward(*args, **kwargs)
+                    plans[:] = [out.plan]
+                    names[:] = list(out.gbuffer)
+                    return (out.image, out.alpha, *out.gbuffer.values())
+
+                # the dummy input gives checkpoint a tensor argument (the inputs are read
+                # from the closure, which non-reentrant checkpointing supports)
+                res = checkpoint(run, view, use_reentrant=False)
+                outs.append(RenderOutput(res[0], res[1], dict(zip(names, res[2:], strict=True)),
+                                         plans[0]))
+            else:
+                outs.append(inner.forward(*args, **kwargs))
+        shadow_maps = tuple(dict.fromkeys(st for o in outs for st in o.plan.shadow_maps))
+        plan = replace(outs[0].plan, shadow_maps=shadow_maps,
+                       chunks=tuple(o.image.shape[0] for o in outs))
+        return RenderOutput(image=torch.cat([o.image for o in outs]),
+                            alpha=torch.cat([o.alpha for o in outs]),
+                            gbuffer={k: torch.cat([o.gbuffer[k] for o in outs])
+                                     for k in outs[0].gbuffer}, plan=plan)
 
     def _reflect(self, plan: RenderPlan, gb: GBuffer, radiance: torch.Tensor,
                  coverage: torch.Tensor, view: torch.Tensor, proj: torch.Tensor,
@@ -805,9 +893,11 @@ class Renderer(nn.Module):
     def _apply_fog(self, plan: RenderPlan, image: torch.Tensor, gb: GBuffer,
                    view: torch.Tensor, proj: torch.Tensor, eye: torch.Tensor,
                    lights: Lights | None, groups: list[ShadowMaps] | None, scene: RenderScene,
-                   face_ranges: torch.Tensor | None, b: int) -> torch.Tensor:
+                   face_ranges: torch.Tensor | None, b: int,
+                   environment: Environment | None = None) -> torch.Tensor:
         """The fog pass (:func:`~torchraster.shading.volumetric.apply_fog`) over the
-        visible surfaces of ``gb`` (the first opaque layer) and the background."""
+        visible surfaces of ``gb`` (the first opaque layer) and the background; the
+        environment of image-based lighting also lights the fog."""
         rays = view_rays(view, proj, plan.resolution).to(image.dtype)
         eye = eye.to(image.dtype).expand(b, 3)
         covered = gb.mask > 0
@@ -816,7 +906,7 @@ class Renderer(nn.Module):
         lit = plan.shading in LIT_MODELS
         bounds = _caster_bounds(scene.positions, scene.faces, face_ranges, b).to(image.dtype)
         return apply_fog(image, dist, eye, rays, self.fog, lights if lit else None,
-                         (groups or ()) if lit else (), view, bounds)
+                         (groups or ()) if lit else (), view, bounds, environment)
 
     def _shadow_maps(self, plan: RenderPlan, scene: RenderScene, view: torch.Tensor,
                      proj: torch.Tensor, lights: Lights, b: int,
@@ -907,6 +997,46 @@ class _Visible:
 
     face_id: torch.Tensor
     depth: torch.Tensor
+
+
+def _items(t: torch.Tensor | None, sl: slice, b: int, dims: int | None = None
+           ) -> torch.Tensor | None:
+    """Items ``sl`` of a per-item tensor (first dimension ``b``; with ``dims``, only when
+    it has that many dimensions: ``(V, 3)`` positions are shared, ``(B, V, 3)`` are not);
+    a shared tensor (batch 1, or unbatched) is returned as is."""
+    if t is None or t.dim() == 0 or t.shape[0] != b or (dims is not None and t.dim() != dims):
+        return t
+    return t[sl]
+
+
+def _scene_items(scene: RenderScene, sl: slice, b: int) -> RenderScene:
+    """The scene of batch items ``sl``: per-item vertex data and ``face_ranges`` sliced."""
+    fields = {name: _items(getattr(scene, name), sl, b, 3)
+              for name in ("positions", "normals", "uvs", "tangents", "object_coords")}
+    fields["face_ranges"] = _items(scene.face_ranges, sl, b, 2)
+    return dataclasses.replace(scene, **fields)
+
+
+def _lights_items(lights: Lights | None, sl: slice, b: int) -> Lights | None:
+    """The lights of batch items ``sl`` (lights of batch size 1 are shared as they are)."""
+    if lights is None or lights.batch_size != b:
+        return lights
+    parts = {}
+    for name in ("directional", "point", "spot"):
+        part = getattr(lights, name)
+        if part is not None:
+            part = dataclasses.replace(part, **{
+                f.name: _items(getattr(part, f.name), sl, b) for f in dataclasses.fields(part)
+                if isinstance(getattr(part, f.name), torch.Tensor)})
+        parts[name] = part
+    return Lights(ambient=_items(lights.ambient, sl, b), **parts)
+
+
+def _environment_per_item(environment: Environment) -> bool:
+    """Whether an environment holds per-item radiance, rotation or intensity (B > 1)."""
+    intensity = environment.intensity
+    return (environment.radiance.shape[0] > 1 or environment.rotation.shape[0] > 1
+            or (isinstance(intensity, torch.Tensor) and intensity.numel() > 1))
 
 
 def _caster_bounds(positions: torch.Tensor, faces: torch.Tensor,

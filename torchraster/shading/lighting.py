@@ -38,7 +38,14 @@ from torchraster.numerics import (
     safe_normalize,
     specular_f0,
 )
-from torchraster.shading.brdf import DIELECTRIC_F0, MIN_COS, MIN_ROUGHNESS, NORMALIZE_EPS
+from torchraster.shading.brdf import (
+    DIELECTRIC_F0,
+    MIN_COS,
+    MIN_ROUGHNESS,
+    NORMALIZE_EPS,
+    ggx_lobe,
+    schlick_weight,
+)
 from torchraster.shading.energy import ENERGY_LUT_SAMPLES, ENERGY_LUT_SIZE, energy_terms
 from torchraster.shading.ibl import dfg_lut, lookup_dfg
 from torchraster.shading.lights import (
@@ -269,15 +276,11 @@ def _ct_lobe(n_l, v_l, w, n_v, nv, a, a2, lam_v):
     inv_len = torch.rsqrt(len2.clamp_min(NORMALIZE_EPS)) * (len2 > NORMALIZE_EPS)
     n_h = (n_l + n_v) * inv_len
     v_h = (1.0 + v_l) * inv_len
-    c2 = n_h.clamp(0.0, 1.0).square()
-    k = a / torch.addcmul(torch.ones_like(c2), c2, a2 - 1.0)  # 1 - c^2 + (c a)^2
-    d = k * k * (n_h > 0)
+    d = ggx_lobe(n_h, a, a2)  # pi D
     nl = n_l.clamp(MIN_COS, 1.0)
     g = torch.addcmul(nl * lam_v, nv, torch.sqrt(torch.addcmul(a2, nl * nl, 1.0 - a2)))
     s1 = d * w / g
-    m = 1.0 - v_h.clamp(0.0, 1.0)
-    m2 = m * m
-    return s1, s1 * (m2 * m2 * m)
+    return s1, s1 * schlick_weight(v_h)
 
 
 def _pack_items(covered, dt, position, normal, albedo, metallic, roughness, camera_position):
@@ -482,9 +485,11 @@ def shade(
         slices = _chunks(part.count, per_chunk)
         use_ckpt = checkpoint_chunks
         if use_ckpt is None:
-            if fused:  # recompute pixel chunks in backward when the whole graph is large
+            if fused:  # recompute pixel chunks in backward when there are several: the
+                # graph then holds the chunks' inputs, not their ~30 temporaries (memory:
+                # docs/benchmarks.md, section memory)
                 use_ckpt = torch.is_grad_enabled() and (
-                    min(per_chunk, part.count) * n_covered > LIGHT_CHUNK_ELEMENTS)
+                    min(per_chunk, part.count) * n_covered > PIXEL_LIGHT_CHUNK * GRAD_CHUNK_FACTOR)
             else:
                 use_ckpt = torch.is_grad_enabled() and len(slices) > 1
         for sl in slices:
