@@ -211,3 +211,22 @@ def test_a_folder_with_a_non_image_is_an_error_naming_it(tmp_path):
     with pytest.raises(tr.ConfigError, match=r"r\.yaml:\d+: randomize\.objects\.textures: .*"
                        r"notes\.txt"):
         tr.config.check_config(cfg)
+
+
+def test_a_camera_that_sees_nothing_warns_naming_the_view(tmp_path, caplog):
+    import logging
+
+    text = """\
+scene:
+  objects: [{primitive: box}]
+cameras:
+  - name: away
+    look_at: {eye: [0, 0, 5], target: [0, 0, 10]}
+render: {resolution: 8}
+outputs: {channels: [color]}
+"""
+    (tmp_path / "a.yaml").write_text(text)
+    with caplog.at_level(logging.WARNING, logger="torchraster"):
+        assert main(["render", str(tmp_path / "a.yaml"), "--out", str(tmp_path / "out")]) == 0
+    assert any("sees nothing" in r.getMessage() and "away" in r.getMessage()
+               for r in caplog.records)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import errno
 import importlib.util
+import logging
 import os
 import tempfile
 from collections.abc import Callable, Iterator
@@ -60,6 +61,7 @@ _ID_CHANNELS = {"instance", "semantic"}
 _FLOW_CHANNELS = {"flow_forward", "flow_backward", "motion"}
 #: Marker in the names of our temporary files (swept when found at start).
 TEMP_MARKER = ".trtmp-"
+log = logging.getLogger("torchraster")
 
 
 @dataclass
@@ -331,6 +333,9 @@ def view_renderer(cfg: RenderFile, device: str | torch.device = "cpu"
             radiance = post.hdr(out.image, depth=depth)
             color = post.display(radiance.clamp(min=0) if post.tonemap.enabled
                                  else radiance.clamp(0, 1))
+        if not bool((out.alpha > 0).any()):
+            log.warning("%s: the camera sees nothing of the scene (an empty image); check "
+                        "its placement", name)
         images = {"color": color[0], "radiance": radiance[0], "alpha": out.alpha[0]}
         images.update({k: v[0] for k, v in out.gbuffer.items()})
         records = _object_records(objects, t, images, view[0], proj[0], res)
