@@ -554,6 +554,17 @@ def _nonfinite(t: torch.Tensor | None) -> int:
         return 0
     return int((~torch.isfinite(t)).sum())
 
+def _random_views(gen: torch.Generator, b: int, dtype: torch.dtype
+                  ) -> tuple[torch.Tensor, torch.Tensor, tuple[int, int]]:
+    """b orbit views of the stage and one random perspective of a random small frame."""
+    view = tr.camera.orbit(torch.tensor([_rand(gen, 0.0, 360.0) for _ in range(b)]),
+                           torch.tensor([_rand(gen, -20.0, 70.0) for _ in range(b)]),
+                           torch.tensor([_rand(gen, 1.5, 6.0) for _ in range(b)]),
+                           torch.tensor([0.0, 0.3, 0.0])).to(dtype)
+    res = (_randint(gen, 4, 32), _randint(gen, 4, 32))
+    proj = tr.camera.perspective(_rand(gen, 20.0, 90.0), res[1] / res[0], 0.01).to(dtype)
+    return view, proj, res
+
 
 #: Channels that need no other frame.
 ONE_FRAME_CHANNELS = tuple(ch for ch in tr.CHANNELS if not ch.startswith("flow")
@@ -709,12 +720,7 @@ def scene_labels(gen: torch.Generator, scene: tr.RenderScene, c: Counter) -> Non
         n_plane = int((scene.face_object == 1).sum())
         scene.face_ranges = torch.tensor([[0, scene.faces.shape[0]],
                                           [n_plane, scene.faces.shape[0]]])
-    view = tr.camera.orbit(torch.tensor([_rand(gen, 0.0, 360.0) for _ in range(b)]),
-                           torch.tensor([_rand(gen, -20.0, 70.0) for _ in range(b)]),
-                           torch.tensor([_rand(gen, 1.5, 6.0) for _ in range(b)]),
-                           torch.tensor([0.0, 0.3, 0.0])).to(dtype)
-    res = (_randint(gen, 4, 32), _randint(gen, 4, 32))
-    proj = tr.camera.perspective(_rand(gen, 20.0, 90.0), res[1] / res[0], 0.01).to(dtype)
+    view, proj, res = _random_views(gen, b, dtype)
     renderer = tr.Renderer(res, shading="unlit", supersample=_randint(gen, 1, 3),
                            cull_backfaces=_chance(gen, 0.3))
     out = renderer(scene, view, proj, channels=LABELS)
@@ -783,12 +789,7 @@ def scene_motion(gen: torch.Generator, scene: tr.RenderScene, c: Counter) -> Non
     scene.materials = [None, tr.Material(base_color_factor=torch.tensor(
         [1.0, 1.0, 1.0, 0.0]), alpha_mode="MASK") if _chance(gen, 0.3) else None]
     b = _randint(gen, 1, 2)
-    view = tr.camera.orbit(torch.tensor([_rand(gen, 0.0, 360.0) for _ in range(b)]),
-                           torch.tensor([_rand(gen, -20.0, 70.0) for _ in range(b)]),
-                           torch.tensor([_rand(gen, 1.5, 6.0) for _ in range(b)]),
-                           torch.tensor([0.0, 0.3, 0.0])).to(dtype)
-    res = (_randint(gen, 4, 32), _randint(gen, 4, 32))
-    proj = tr.camera.perspective(_rand(gen, 20.0, 90.0), res[1] / res[0], 0.01).to(dtype)
+    view, proj, res = _random_views(gen, b, dtype)
     split = 25  # _stage's plane vertices come first
     nxt = _other_frame(gen, positions, split, b, proj)
     prev = _other_frame(gen, positions, split, b, proj)

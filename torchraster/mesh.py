@@ -525,6 +525,24 @@ def _concat(attrs: list[torch.Tensor | None]) -> torch.Tensor | None:
     return None if any(a is None for a in attrs) else torch.cat(attrs, 0)  # type: ignore[arg-type]
 
 
+def check_meshes(meshes: object) -> list[Mesh]:
+    """``meshes`` as a non-empty list of :class:`Mesh` of one dtype and device; the error
+    names the argument (``meshes[i]``) otherwise."""
+    if not isinstance(meshes, (list, tuple)) or not meshes:
+        raise ValueError("meshes: expected a non-empty list of Mesh")
+    for i, m in enumerate(meshes):
+        if not isinstance(m, Mesh):
+            raise TypeError(f"meshes[{i}]: expected a Mesh, got {type(m).__name__}")
+    ref = meshes[0].positions
+    for i, m in enumerate(meshes):
+        if m.positions.dtype != ref.dtype or m.positions.device != ref.device:
+            raise ValueError(
+                f"meshes[{i}]: dtype/device {m.positions.dtype}/{m.positions.device} differs "
+                f"from meshes[0] ({ref.dtype}/{ref.device})"
+            )
+    return list(meshes)
+
+
 def pack_meshes(meshes: list[Mesh]) -> PackedMeshes:
     """Pack meshes of different topology into one vertex and face list.
 
@@ -545,18 +563,8 @@ def pack_meshes(meshes: list[Mesh]) -> PackedMeshes:
         tensor([[0, 1],
                 [1, 2]])
     """
-    if not isinstance(meshes, (list, tuple)) or not meshes:
-        raise ValueError("meshes: expected a non-empty list of Mesh")
-    for i, m in enumerate(meshes):
-        if not isinstance(m, Mesh):
-            raise TypeError(f"meshes[{i}]: expected a Mesh, got {type(m).__name__}")
+    meshes = check_meshes(meshes)
     ref = meshes[0].positions
-    for i, m in enumerate(meshes):
-        if m.positions.dtype != ref.dtype or m.positions.device != ref.device:
-            raise ValueError(
-                f"meshes[{i}]: dtype/device {m.positions.dtype}/{m.positions.device} differs "
-                f"from meshes[0] ({ref.dtype}/{ref.device})"
-            )
     nv = torch.tensor([m.num_vertices for m in meshes], dtype=torch.int64)
     nf = torch.tensor([m.num_faces for m in meshes], dtype=torch.int64)
     v_end, f_end = nv.cumsum(0), nf.cumsum(0)
@@ -588,4 +596,5 @@ __all__ = [
     "transform_normals",
     "transform_tangents",
     "pack_meshes",
+    "check_meshes",
 ]

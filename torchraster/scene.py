@@ -23,6 +23,7 @@ from ._validate import check_tensor
 from .material import Material
 from .mesh import (
     Mesh,
+    check_meshes,
     pack_meshes,
     transform_normals,
     transform_points,
@@ -281,18 +282,8 @@ class RenderScene:
             >>> scene.face_object.unique()
             tensor([1, 2])
         """
-        meshes = list(meshes) if isinstance(meshes, (list, tuple)) else meshes
-        if not isinstance(meshes, list) or not meshes:
-            raise ValueError("meshes: expected a non-empty sequence of Mesh")
-        for i, m in enumerate(meshes):
-            if not isinstance(m, Mesh):
-                raise TypeError(f"meshes[{i}]: expected a Mesh, got {type(m).__name__}")
+        meshes = check_meshes(meshes)
         ref = meshes[0].positions
-        for i, m in enumerate(meshes):
-            if m.positions.dtype != ref.dtype or m.positions.device != ref.device:
-                raise ValueError(f"meshes[{i}]: dtype/device {m.positions.dtype}/"
-                                 f"{m.positions.device} differs from meshes[0] "
-                                 f"({ref.dtype}/{ref.device})")
         n = len(meshes)
         if object_to_world is None:
             object_to_world = torch.eye(4, dtype=ref.dtype, device=ref.device).expand(n, 4, 4)
