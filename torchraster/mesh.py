@@ -19,7 +19,7 @@ import torch
 
 from ._validate import check_tensor
 from .material import Material
-from .numerics import compute_dtype
+from .numerics import compute_dtype, finish_low_precision, to_compute
 
 #: Squared length of an (unnormalised) normal below which it counts as zero. Cross products of
 #: edges of length L have squared length ~L**4, so this only catches truly degenerate
@@ -207,7 +207,8 @@ def face_normals(positions: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     """
     pos, batched = _batched("positions", positions, 3)
     faces = _check_faces(faces, pos.shape[1])
-    return _unbatch(_safe_normalize(_face_cross(pos, faces))[0], batched)
+    unit = _safe_normalize(_face_cross(to_compute(pos), faces))[0]  # half: in float32
+    return _unbatch(finish_low_precision(unit, pos.dtype), batched)
 
 
 def _face_cross(pos: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
@@ -242,11 +243,12 @@ def vertex_normals(positions: torch.Tensor, faces: torch.Tensor) -> torch.Tensor
     """
     pos, batched = _batched("positions", positions, 3)
     faces = _check_faces(faces, pos.shape[1])
-    cross = _face_cross(pos, faces)
-    acc = torch.zeros_like(pos)
+    # half precision in float32: the cross products' backward overflows float16
+    cross = _face_cross(to_compute(pos), faces)
+    acc = cross.new_zeros(pos.shape)
     for k in range(3):
         acc = acc.index_add(1, faces[:, k], cross)
-    return _unbatch(_safe_normalize(acc)[0], batched)
+    return _unbatch(finish_low_precision(_safe_normalize(acc)[0], pos.dtype), batched)
 
 
 def flat(mesh: Mesh) -> Mesh:

@@ -56,7 +56,7 @@ import torch
 
 from ._validate import check_tensor
 from .mesh import transform_points
-from .numerics import LOW_PRECISION, compute_dtype, finish_low_precision
+from .numerics import compute_dtype, finish_low_precision, to_compute
 from .raster import Fragments, interpolate, rasterize_depth
 
 #: Relative depth tolerance of the occlusion test of :func:`flow_validity` (module docstring).
@@ -141,25 +141,9 @@ def _batched(x: torch.Tensor) -> torch.Tensor:
     return x if x.dim() == 3 else x.unsqueeze(0)
 
 
-class _SaturatingCast(torch.autograd.Function):
-    """``x.to(dtype)`` whose gradient goes back to ``x``'s dtype saturated to its finite
-    range: the half-precision policy (:func:`~torchraster.numerics.finish_low_precision`)
-    applied to gradients, which near the other camera's plane (``w -> 0``) exceed float16's
-    range."""
-
-    @staticmethod
-    def forward(ctx, x: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-        ctx.source = x.dtype
-        return x.to(dtype)
-
-    @staticmethod
-    def backward(ctx, grad: torch.Tensor):
-        return finish_low_precision(grad, ctx.source), None
-
-
 def _to(x: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
     """``x`` in the compute ``dtype`` (gradients saturated for float16 / bfloat16 ``x``)."""
-    return _SaturatingCast.apply(x, dtype) if x.dtype in LOW_PRECISION else x.to(dtype)
+    return to_compute(x, dtype)
 
 
 def _check(frags: Fragments, faces: torch.Tensor, other_positions: torch.Tensor,
@@ -277,7 +261,13 @@ def optical_flow(frags: Fragments, faces: torch.Tensor, other_positions: torch.T
         frames' positions and cameras.
 
     Example:
-        >>> flow = optical_flow(frags, faces, next_positions, next_view, next_proj)
+        >>> from torchraster.raster import rasterize
+        >>> pos = torch.tensor([[-1.0, -1, 0], [3, -1, 0], [-1, 3, 0]])
+        >>> faces, camera = torch.tensor([[0, 1, 2]]), torch.eye(4)  # clip = world
+        >>> frags = rasterize(torch.cat([pos, torch.ones(3, 1)], 1)[None], faces, (4, 4))
+        >>> flow = optical_flow(frags, faces, pos + torch.tensor([0.5, -0.5, 0]), camera, camera)
+        >>> flow.shape, flow[0, :, 0, 0].round()  # 0.5 NDC = 1 pixel: right, and down
+        (torch.Size([1, 2, 4, 4]), tensor([1., 1.]))
     """
     rep = reproject(frags, faces, other_positions, other_view, other_proj)
     return finish_low_precision(flow_from(rep), frags.bary_packed.dtype)

@@ -114,6 +114,28 @@ def finish_low_precision(y: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
     return y.to(dtype)
 
 
+class _SaturatingCast(torch.autograd.Function):
+    """``x.to(dtype)`` whose gradient goes back to ``x``'s dtype saturated to its finite
+    range (the half-precision policy of :func:`finish_low_precision` applied to gradients)."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+        ctx.source = x.dtype
+        return x.to(dtype)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        return finish_low_precision(grad, ctx.source), None
+
+
+def to_compute(x: torch.Tensor, dtype: torch.dtype | None = None) -> torch.Tensor:
+    """``x`` in ``dtype`` (default :func:`compute_dtype` of ``x``: float32 for float16 /
+    bfloat16); for half-precision ``x`` its gradient returns saturated to ``x``'s finite
+    range, so a large float32 gradient never becomes Inf in half."""
+    dtype = compute_dtype(x) if dtype is None else dtype
+    return _SaturatingCast.apply(x, dtype) if x.dtype in LOW_PRECISION else x.to(dtype)
+
+
 def grid_sample(input: torch.Tensor, grid: torch.Tensor, **kwargs) -> torch.Tensor:
     """``F.grid_sample`` evaluated in :func:`compute_dtype` (float32 for float16 / bfloat16).
 
@@ -175,5 +197,6 @@ def take_columns(table: torch.Tensor, index: torch.Tensor,
 __all__ = [
     "DIELECTRIC_F0", "FLOOR_DIV_EXACT_LIMIT", "LOW_PRECISION", "NORMALIZE_EPS",
     "compute_dtype", "diffuse_color", "dot", "finish_low_precision", "floor_div_exact",
+    "to_compute",
     "grid_sample", "safe_normalize", "specular_f0", "take_columns",
 ]

@@ -26,7 +26,7 @@ import torch
 
 from .. import frame_pool
 from .._validate import check_frame_memory, check_has_data, check_resolution, check_tensor
-from ..numerics import floor_div_exact, take_columns
+from ..numerics import floor_div_exact, take_columns, to_compute
 from .binning import (
     DZDX,
     DZDY,
@@ -233,13 +233,22 @@ def rasterize(
         All K layers are resolved in one binning pass (:func:`insert_layers`).
 
     Example:
-        >>> frags = rasterize(clip, faces, (256, 256), layers=2)
-        >>> front, back = frags.layers  # e.g. the two sides of a closed mesh
+        >>> clip = torch.tensor([[[-1.0, -1, 0.5, 1], [3, -1, 0.5, 1], [-1, 3, 0.5, 1],
+        ...                       [-1, -1, -0.5, 1], [0.5, -1, -0.5, 1], [-1, 0.5, -0.5, 1]]])
+        >>> faces = torch.tensor([[0, 1, 2], [3, 4, 5]])  # 0: whole screen, 1: nearer corner
+        >>> front, back = rasterize(clip, faces, (2, 2), layers=2).layers
+        >>> front.face_id, back.face_id
+        (tensor([[[0, 0],
+                 [1, 0]]]), tensor([[[-1, -1],
+                 [ 0, -1]]]))
     """
     clip_pos, faces, (h, w), face_ranges = check_inputs(clip_pos, faces, resolution,
                                                          face_ranges)
     cull_backfaces = check_options(clip_pos, faces, cull_backfaces, tile)
     layers = check_layers(layers)
+    # half precision: barycentrics and their backward (1 / sum(l), per-pixel products)
+    # overflow float16; evaluate in float32, gradients back to clip_pos saturated
+    clip_pos = to_compute(clip_pos)
     keys = resolve_keys(clip_pos, faces, (h, w), cull_backfaces, face_ranges, int(tile),
                         memory_budget, BYTES_PER_PIXEL * layers, layers=layers)
     b = clip_pos.shape[0]
@@ -272,7 +281,11 @@ def rasterize_depth(
         is recomputed differentiably).
 
     Example:
-        >>> depth = rasterize_depth(clip, faces, (512, 512))  # (B, 512, 512)
+        >>> clip = torch.tensor([[[-1.0, -1, 0.5, 1], [3, -1, 0.5, 1], [-1, 3, 0.5, 1],
+        ...                       [-1, -1, -0.5, 1], [0.5, -1, -0.5, 1], [-1, 0.5, -0.5, 1]]])
+        >>> rasterize_depth(clip, torch.tensor([[0, 1, 2], [3, 4, 5]]), (2, 2))
+        tensor([[[ 0.5000,  0.5000],
+                 [-0.5000,  0.5000]]])
     """
     clip_pos, faces, (h, w), face_ranges = check_inputs(clip_pos, faces, resolution,
                                                          face_ranges)
