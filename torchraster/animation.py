@@ -84,6 +84,10 @@ def quaternion_from_euler(angles_deg: torch.Tensor | Sequence[float],
     The quaternion of an angle a about a unit axis e is ``(cos a/2, sin a/2 e)``; the
     three are multiplied in the order they act (Shoemake, "Euler angle conversion",
     Graphics Gems IV). Differentiable.
+
+    Example:
+        >>> quaternion_from_euler([0.0, 0.0, 90.0])  # (cos 45 deg, sin 45 deg * z axis)
+        tensor([0.7071, 0.0000, 0.0000, 0.7071])
     """
     axes, intrinsic = _check_order(order)
     angles = _float_tensor("angles_deg", angles_deg)
@@ -140,6 +144,11 @@ def slerp(q0: torch.Tensor, q1: torch.Tensor, t: torch.Tensor | float) -> torch.
     ``sin((1 - t) theta) / sin(theta) q0 + sin(t theta) / sin(theta) q1``, written with
     sinc so that it stays exact and differentiable as q0 -> +-q1 (theta -> 0), and theta
     from ``2 atan2(|q0 - q1|, |q0 + q1|)``, accurate at small angles where acos is not.
+
+    Example:
+        >>> identity = torch.tensor([1.0, 0, 0, 0])
+        >>> slerp(identity, quaternion_from_euler([0.0, 90.0, 0.0]), 0.5)  # 45 deg about y
+        tensor([0.9239, 0.0000, 0.3827, 0.0000])
     """
     q0 = _check_quaternion("q0", q0)
     q1 = _check_quaternion("q1", q1)
@@ -395,6 +404,12 @@ def transform_at(keys: Keyframes, t: torch.Tensor | Sequence[float] | float) -> 
     Scale, then rotate, then translate: ``M = [R diag(s) | translation]``. At a key's time
     the result is that key's transform; times outside the keys hold the end values.
     Differentiable with respect to the key values (and times).
+
+    Example:
+        >>> keys = Keyframes(times=[0.0, 1.0], translation=[[0.0, 0, 0], [2.0, 0, 0]])
+        >>> transform_at(keys, [0.5, 2.0])[:, :3, 3]  # halfway; after the last key: held
+        tensor([[1., 0., 0.],
+                [2., 0., 0.]])
     """
     return compose_transform(*sample_keyframes(keys, t))
 

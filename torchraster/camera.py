@@ -59,6 +59,11 @@ def look_at(
 
     eye, target, up: ``(B, 3)`` or ``(3,)``; up defaults to +y (a fallback axis is used where
     the view direction is parallel to up). Returns ``(B, 4, 4)``.
+
+    Example:
+        >>> view = look_at([0.0, 0, 3], [0.0, 0, 0])  # B = 1
+        >>> transform_points(torch.zeros(1, 3), view)  # the target lies 3 along view -z
+        tensor([[[ 0.,  0., -3.,  1.]]])
     """
     ref = eye if isinstance(eye, torch.Tensor) else target
     dtype = ref.dtype if isinstance(ref, torch.Tensor) and ref.is_floating_point() else None
@@ -95,6 +100,10 @@ def orbit(
     """World -> view matrices of cameras orbiting ``target`` (y up), ``(B, 4, 4)``.
 
     Azimuth 0 looks from +z towards the target; elevation is above the xz-plane.
+
+    Example:
+        >>> orbit(torch.tensor([0.0, 90, 180, 270]), 30.0, 2.0).shape  # scalars broadcast
+        torch.Size([4, 4, 4])
     """
     az, el, dist = _batch_args(azimuth_deg, elevation_deg, distance)
     az, el = torch.deg2rad(az), torch.deg2rad(el)
@@ -116,6 +125,12 @@ def perspective(
 
     fov_y_deg: vertical field of view in degrees, in (0, 180). aspect: width / height.
     near > 0; far > near or ``math.inf``. See the module docstring for ``reverse_z``.
+
+    Example:
+        >>> proj = perspective(90.0, 1.0, near=1.0, far=3.0)
+        >>> clip = transform_points(torch.tensor([[0.0, 0, -1], [0, 0, -3]]), proj)
+        >>> clip[..., 2] / clip[..., 3]  # NDC z: the near plane -> -1, the far plane -> +1
+        tensor([[-1.,  1.]])
     """
     fov, asp, n, f = _batch_args(fov_y_deg, aspect, near, far)
     if bool(((fov <= 0) | (fov >= 180)).any()):
@@ -293,6 +308,11 @@ def convert(matrix: torch.Tensor, src: str, dst: str, kind: str = "world_to_came
 
     Raises:
         ValueError: an unknown convention or kind (listing the valid ones), a bad shape.
+
+    Example:
+        >>> view = look_at([0.0, 0, 3], [0.0, 0, 0])  # OpenGL: the target is at z = -3
+        >>> convert(view, "opengl", "opencv")[0] @ torch.tensor([0.0, 0, 0, 1])  # z forward
+        tensor([0., 0., 3., 1.])
     """
     m = _check_matrices("matrix", matrix)
     if kind not in _KINDS:
@@ -359,6 +379,12 @@ def intrinsics_from_projection(proj: torch.Tensor, resolution: tuple[int, int]) 
     Raises:
         ValueError: a projection that is not a perspective one of this form (e.g.
             orthographic), or a skewed y axis (``P10 != 0``) that K cannot hold.
+
+    Example:
+        >>> intrinsics_from_projection(perspective(90.0, 1.0, 0.1), (64, 64))[0]
+        tensor([[32.0000,  0.0000, 31.5000],
+                [ 0.0000, 32.0000, 31.5000],
+                [ 0.0000,  0.0000,  1.0000]])
     """
     p = _check_matrices("proj", proj)
     h, w = (int(s) for s in resolution)

@@ -575,7 +575,13 @@ def load_spot(*, max_texture_size: int | None = None) -> Mesh:
     """The shipped "spot" cow (Keenan Crane, public domain; ``assets/spot/README.txt``):
     5,856 triangles with UVs and its 1024^2 base-colour texture, as a Mesh with a
     dielectric material (metallic 0, roughness 0.5). Its OBJ has no MTL, so the texture is
-    attached here."""
+    attached here.
+
+    Example:
+        >>> spot = load_spot()
+        >>> spot.positions.shape, spot.faces.shape, spot.uvs.shape
+        (torch.Size([3225, 3]), torch.Size([5856, 3]), torch.Size([3225, 2]))
+    """
     mesh = load_mesh(ASSETS_DIR / "spot" / "spot_triangulated.obj")
     texture = load_texture(ASSETS_DIR / "spot" / "spot_texture.png", max_size=max_texture_size)
     material = Material(

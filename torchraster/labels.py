@@ -69,6 +69,15 @@ def instance_boxes(instance: torch.Tensor, n_objects: int) -> tuple[torch.Tensor
     Returns:
         ``boxes (..., N, 4)`` float64 (row n - 1 is instance n; NaN where absent) and
         ``counts (..., N)`` int64, as :func:`mask_boxes` of ``instance == n``.
+
+    Example:
+        >>> boxes, counts = instance_boxes(torch.tensor([[0, 1, 1], [0, 2, 0]]), 3)
+        >>> boxes  # x0, y0, x1, y1 (exclusive); instance 3 is not visible
+        tensor([[1., 0., 3., 1.],
+                [1., 1., 2., 2.],
+                [nan, nan, nan, nan]], dtype=torch.float64)
+        >>> counts
+        tensor([2, 1, 0])
     """
     if instance.is_floating_point() or instance.is_complex():
         raise TypeError(f"instance: expected an integer tensor, got {instance.dtype}")

@@ -208,7 +208,17 @@ def distribution(spec: Mapping[str, object]) -> Distribution:
 def sample(spec: object, rng: np.random.Generator) -> object:
     """Draw one value of ``spec`` with ``rng``: a distribution (dataclass or ``{"type": ...}``
     dict) gives a float / list of floats / an option; a constant (number, list of numbers,
-    str, bool, None) is returned unchanged (a copy). The result is JSON-serialisable."""
+    str, bool, None) is returned unchanged (a copy). The result is JSON-serialisable.
+
+    Example:
+        >>> spec = {"type": "uniform", "low": 1.0, "high": 2.0}
+        >>> x = sample(spec, rng_for(0, "light", 3))
+        >>> 1.0 <= x <= 2.0, x == sample(spec, rng_for(0, "light", 3))  # reproducible
+        (True, True)
+        >>> rng = rng_for(0)
+        >>> sample(Choice(["wood", "metal"], weights=[1, 0]), rng), sample(3.0, rng)
+        ('wood', 3.0)
+    """
     if not isinstance(rng, np.random.Generator):
         raise TypeError(f"rng: expected a numpy.random.Generator (see rng_for), "
                         f"got {type(rng).__name__}")

@@ -389,8 +389,12 @@ class Renderer(nn.Module):
             intensity raises NotImplementedError. ``out.plan.chunks`` reports the split.
 
     Example:
-        >>> renderer = Renderer(256, shading="headlight")
-        >>> out = renderer(tr.load_spot(), view, proj)   # out.image (B, 3, 256, 256)
+        >>> import torchraster as tr
+        >>> view = tr.camera.orbit([0.0, 90.0], 20.0, 3.0)  # two views: B = 2
+        >>> out = Renderer(64, shading="headlight")(tr.load_spot(), view,
+        ...                                         tr.camera.perspective(45.0, 1.0, 0.1))
+        >>> out.image.shape, out.alpha.shape
+        (torch.Size([2, 3, 64, 64]), torch.Size([2, 1, 64, 64]))
     """
 
     def __init__(

@@ -278,9 +278,11 @@ class RenderScene:
             ``(V, 3)``.
 
         Example:
-            >>> scene = RenderScene.from_objects([cube, cube], torch.stack([m0, m1]), [1, 1])
-            >>> scene.face_object.unique()
-            tensor([1, 2])
+            >>> tri = Mesh(torch.eye(3), torch.tensor([[0, 1, 2]]))
+            >>> scene = RenderScene.from_objects([tri, tri], torch.eye(4).expand(2, 4, 4),
+            ...                                  [7, 7])
+            >>> scene.face_object, scene.object_category
+            (tensor([1, 2]), tensor([0, 7, 7]))
         """
         meshes = check_meshes(meshes)
         ref = meshes[0].positions

@@ -533,8 +533,14 @@ class SSR(nn.Module):
         enabled: ``False`` returns the image unchanged.
 
     Example:
-        >>> out = SSR()(image, depth, normals_view, roughness, metallic, albedo,
-        ...             projection=proj, fallback=env_specular)
+        >>> image, depth = torch.rand(1, 3, 8, 8), torch.full((1, 1, 8, 8), 2.0)
+        >>> normals = torch.tensor([0.0, 0, 1]).view(1, 3, 1, 1).expand(1, 3, 8, 8)
+        >>> from torchraster.camera import perspective
+        >>> rough, proj = torch.full((1, 1, 8, 8), 0.1), perspective(90.0, 1.0, 0.1)
+        >>> out = SSR()(image, depth, normals, rough, torch.ones_like(rough), image,
+        ...             projection=proj)
+        >>> out.shape, torch.equal(out, image)  # a mirror facing the camera: rays leave
+        (torch.Size([1, 3, 8, 8]), True)
     """
 
     def __init__(

@@ -156,10 +156,18 @@ def antialias(
         - Output: :math:`(B, C, H, W)`.
 
     Example:
-        >>> frags = rasterize(clip, faces, (256, 256))
-        >>> rgb = interpolate(colors, frags, faces)                      # (B, 3, 256, 256)
+        >>> from torchraster.raster import interpolate, rasterize
+        >>> clip = torch.tensor([[[-0.5, -0.5, 0, 1], [0.5, -0.5, 0, 1], [0, 0.6, 0, 1]]],
+        ...                     requires_grad=True)
+        >>> faces = torch.tensor([[0, 1, 2]])
+        >>> frags = rasterize(clip, faces, (8, 8))
+        >>> rgb = interpolate(torch.eye(3), frags, faces)
         >>> rgba = antialias(torch.cat([rgb, frags.mask], 1), frags, clip, faces)
-        >>> loss = (rgba[:, 3:] - target_silhouette).abs().mean()       # grads to clip
+        >>> rgba[:, 3].unique().numel() > 2  # fractional coverage along the edges
+        True
+        >>> rgba[:, 3].sum().backward()  # e.g. a silhouette loss: gradients reach clip
+        >>> bool(clip.grad.abs().sum() > 0)
+        True
     """
     color, fid, clip_pos, faces, topology = _check_inputs(color, frags, clip_pos, faces,
                                                           topology)

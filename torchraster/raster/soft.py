@@ -162,8 +162,12 @@ def soft_rasterize(
         depths and (B, H, W, K, 3) barycentrics, differentiable with respect to clip_pos.
 
     Example:
-        >>> sf = soft_rasterize(clip, faces, (128, 128), sigma=0.5, k=8)
-        >>> rgba = soft_blend(sf.interpolate(vertex_colors, faces), sf)  # (B, 4, 128, 128)
+        >>> clip = torch.tensor([[[-0.5, -0.5, 0, 1], [0.5, -0.5, 0, 1], [0, 0.5, 0, 1]]])
+        >>> faces = torch.tensor([[0, 1, 2]])
+        >>> sf = soft_rasterize(clip, faces, (8, 8), sigma=0.5, k=2)
+        >>> rgba = soft_blend(sf.interpolate(torch.eye(3), faces), sf)
+        >>> rgba.shape, bool((rgba[:, 3] > 0).all())  # coverage (and gradients) outside too
+        (torch.Size([1, 4, 8, 8]), True)
     """
     clip_pos, faces, (h, w), face_ranges = check_inputs(clip_pos, faces, resolution,
                                                          face_ranges)

@@ -409,8 +409,16 @@ def shade(
         dtype (float16 / bfloat16 inputs are shaded in float32 and saturated on output).
 
     Example:
-        >>> gb = GBuffer(position=pos, normal=n, albedo=a, metallic=m, roughness=r)
-        >>> radiance = shade(gb, camera_position=eye, lights=lights)
+        >>> from torchraster.shading.lights import DirectionalLights, Lights
+        >>> z, one = torch.tensor([0.0, 0, 1]).view(1, 3, 1, 1), torch.ones(1, 1, 2, 2)
+        >>> gb = GBuffer(position=0 * z * one, normal=z * one, albedo=one.expand(1, 3, 2, 2),
+        ...              metallic=0 * one, roughness=one)
+        >>> sun = DirectionalLights(direction=torch.tensor([[[0.0, 0, -1]]]),
+        ...                         color=torch.ones(1, 1, 3), intensity=torch.ones(1, 1))
+        >>> rad = shade(gb, camera_position=torch.tensor([[0.0, 0, 1]]),
+        ...             lights=Lights(directional=sun), model="half_lambert")
+        >>> rad.shape, rad[0, :, 0, 0]  # albedo / pi * 1 lux, the sun straight above
+        (torch.Size([1, 3, 2, 2]), tensor([0.3183, 0.3183, 0.3183]))
     """
     if not isinstance(gbuffer, GBuffer):
         raise TypeError(f"gbuffer: expected a torchraster.GBuffer, got {type(gbuffer).__name__}"

@@ -768,7 +768,11 @@ def apply_fog(image: torch.Tensor, distance: torch.Tensor, eye: torch.Tensor,
         fogged in float32 and saturated on output).
 
     Example:
-        >>> out = apply_fog(img, dist, eye, view_rays(view, proj, (H, W)), Fog(density=0.2))
+        >>> image, distance = torch.ones(1, 3, 2, 2), torch.full((1, 1, 2, 2), 2.0)
+        >>> rays = torch.tensor([0.0, 0, -1]).view(1, 3, 1, 1).expand(1, 3, 2, 2)
+        >>> out = apply_fog(image, distance, torch.zeros(1, 3), rays, Fog(density=0.5))
+        >>> out[0, :, 0, 0]  # no lights: only the transmittance exp(-0.5 * 2)
+        tensor([0.3679, 0.3679, 0.3679])
     """
     check_tensor("image", image, (rays.shape[0], 3, *rays.shape[-2:]), floating=True)
     out_dtype = image.dtype
