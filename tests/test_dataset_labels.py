@@ -637,10 +637,12 @@ scene:
 """
 
 BAD = {
-    "keys out of order": (ANIMATED.replace("TIME", "0.25"), 4,
-                          "scene.objects.0.animation", "keys[1].time (0.25) comes before"),
-    "keys duplicated": (ANIMATED.replace("TIME", "0.5"), 4, "scene.objects.0.animation",
-                        "keys[1].time (0.5) duplicates"),
+    "keys out of order": (ANIMATED.replace("TIME", "0.25"), 7,  # the key's own line
+                          "scene.objects.0.animation.keys.1.time",
+                          "0.25 comes before keys[0].time (0.5)"),
+    "keys duplicated": (ANIMATED.replace("TIME", "0.5"), 7,
+                        "scene.objects.0.animation.keys.1.time",
+                        "0.5 duplicates keys[0].time (0.5)"),
     "no frames": (GOOD + "frames: {count: 0}\n", 5, "frames.count", "greater than or equal"),
     "too many frames": (GOOD + "frames: {count: 100001}\n", 5, "frames.count",
                         "less than or equal to 100000"),

@@ -102,6 +102,20 @@ def dataset_problems(cfg: RenderFile) -> list[str]:
         if export in EXPORT_NEEDS_NPY and "npy" not in cfg.outputs.formats:
             problems.append(f"{cfg.where('outputs', 'exports', i)}: {export} reads npy files: "
                             "add npy to outputs.formats")
+    keyed = [(("scene", "animation"), cfg.scene.animation)] + [
+        (("scene", "objects", i, "animation"), o.animation)
+        for i, o in enumerate(cfg.scene.objects)] + [
+        (("cameras", i, "trajectory"), c.trajectory) for i, c in enumerate(cfg.cameras)]
+    for loc, block in keyed:
+        if block is None:
+            continue
+        for i in range(1, len(block.keys)):
+            now, before = block.keys[i].time, block.keys[i - 1].time
+            if now <= before:
+                what = "duplicates" if now == before else "comes before"
+                problems.append(f"{cfg.where(*loc, 'keys', i, 'time')}: {now} {what} "
+                                f"keys[{i - 1}].time ({before}): keyframes must be in "
+                                "increasing time order")
     named = [(("scene", "category"), cfg.scene.category)] + [
         (("scene", "objects", i, "category"), o.category)
         for i, o in enumerate(cfg.scene.objects)]
