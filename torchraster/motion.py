@@ -83,6 +83,13 @@ class OtherFrame:
             current frame's (same V, same order), at the other frame's time.
         view: ``(B, 4, 4)`` or ``(4, 4)`` world -> view of the other frame's camera.
         proj: ``(B, 4, 4)`` or ``(4, 4)`` its projection (OpenGL clip).
+        depth: the frame's visible depth (:class:`OtherDepth` of :func:`other_frame_depth`,
+            ``(B or 1, H, W)`` float64 at the render's resolution, rasterized with the
+            render's faces, culling and face ranges) or None: the Renderer rasterizes it for
+            ``*_valid`` channels and stores it here, so the same ``OtherFrame`` passed again
+            (e.g. frame t + 1's as frame t's ``next_frame``, then as frame t + 2's
+            ``previous_frame``) is not rasterized twice. Only pass a depth computed for these
+            positions and this camera.
 
     Checked on construction; errors name the field (``OtherFrame.positions``, ...). A batch
     size of 1 broadcasts.
@@ -91,6 +98,7 @@ class OtherFrame:
     positions: torch.Tensor
     view: torch.Tensor
     proj: torch.Tensor
+    depth: OtherDepth | None = None
 
     def __post_init__(self) -> None:
         pos = self.positions
@@ -100,6 +108,16 @@ class OtherFrame:
             m = getattr(self, name)
             shape = (4, 4) if isinstance(m, torch.Tensor) and m.dim() == 2 else ("B", 4, 4)
             check_tensor(f"OtherFrame.{name}", m, shape, floating=True, finite=True)
+        if self.depth is not None:
+            if not isinstance(self.depth, OtherDepth):
+                raise TypeError("OtherFrame.depth: expected an OtherDepth (other_frame_depth) "
+                                f"or None, got {type(self.depth).__name__}")
+            for name in ("depth", "slope"):
+                check_tensor(f"OtherFrame.depth.{name}", getattr(self.depth, name),
+                             ("B", "H", "W"), floating=True)
+            if self.depth.depth.shape != self.depth.slope.shape:
+                raise ValueError(f"OtherFrame.depth: depth {tuple(self.depth.depth.shape)} and "
+                                 f"slope {tuple(self.depth.slope.shape)} differ in shape")
 
     def check_against(self, name: str, num_vertices: int, batch: int) -> None:
         """Raise a ValueError naming ``name`` (e.g. ``"next_frame"``) unless the frame holds
@@ -114,6 +132,16 @@ class OtherFrame:
             if n not in (1, batch):
                 raise ValueError(f"{name}.{field}: batch size {n} does not match the render's "
                                  f"{batch} (use 1 to share)")
+
+    def check_depth(self, name: str, resolution: tuple[int, int], batch: int) -> None:
+        """Raise a ValueError naming ``name`` unless :attr:`depth` (when set) is
+        ``(1 or batch, *resolution)``."""
+        if self.depth is None:
+            return
+        got = tuple(self.depth.depth.shape)
+        if got[1:] != tuple(resolution) or got[0] not in (1, batch):
+            raise ValueError(f"{name}.depth: shape {got}, expected ({batch} or 1, "
+                             f"{resolution[0]}, {resolution[1]}) (the render's resolution)")
 
 
 class Reprojection(NamedTuple):

@@ -291,6 +291,10 @@ def view_renderer(cfg: RenderFile, device: str | torch.device = "cpu"
     key times, so the first frame's backward and the last frame's forward flow are defined
     too. Every view also gets its per-object records (:attr:`ViewResult.objects`).
 
+    The renderer keeps the poses and other frames of its last few frames: rendering the
+    frames of a camera in order, each frame poses the scene and rasterizes the depth of
+    flow validity once (not three and two times); the images are the same in any order.
+
     Args:
         cfg: a config of one object (not a mesh set; see :func:`plan_objects`).
         device: where to render.
@@ -310,9 +314,23 @@ def view_renderer(cfg: RenderFile, device: str | torch.device = "cpu"
         channels.add("depth")
     dt = 1.0 / cfg.frames.fps
 
-    def other(cam: CameraConfig, t: float) -> OtherFrame:
-        view, proj = build_camera(cam, frame_framing, res, t)
-        return OtherFrame(objects.positions_at(t).to(device), view.to(device), proj.to(device))
+    # the other frames of the last few renders by (camera, frame): frame f's next frame is
+    # frame f + 2's previous one, so its depth (rasterized for flow validity and stored on
+    # the OtherFrame by the renderer) is reused when the frames of a camera render in order
+    others: dict[tuple[str, int], OtherFrame] = {}
+
+    def other(cam: CameraConfig, frame: int) -> OtherFrame:
+        key = (cam.model_dump_json(), frame)
+        found = others.pop(key, None)
+        if found is None:
+            t = frame * dt
+            view, proj = build_camera(cam, frame_framing, res, t)
+            found = OtherFrame(objects.positions_at(t).to(device), view.to(device),
+                               proj.to(device))
+            while len(others) >= 6:  # frame f - 1 was made by frame f - 2: keep 3 frames
+                others.pop(next(iter(others)))  # the least recently used
+        others[key] = found
+        return found
 
     def render_view(cam: CameraConfig, name: str, frame: int = 0) -> ViewResult:
         t = frame * dt
@@ -320,9 +338,9 @@ def view_renderer(cfg: RenderFile, device: str | torch.device = "cpu"
         scene = objects.at(t)
         motion = {}
         if channels & {"flow_forward", "flow_forward_valid"}:
-            motion["next_frame"] = other(cam, t + dt)
+            motion["next_frame"] = other(cam, frame + 1)
         if channels & {"flow_backward", "flow_backward_valid", "motion"}:
-            motion["previous_frame"] = other(cam, t - dt)
+            motion["previous_frame"] = other(cam, frame - 1)
         with torch.no_grad():
             out = renderer(scene, view.to(device), proj.to(device), lights, env, channels,
                            **motion)

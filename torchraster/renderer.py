@@ -43,6 +43,7 @@ from .material import Material
 from .mesh import transform_points, vertex_normals
 from .motion import (
     MOTION_CHANNELS,
+    OtherDepth,
     OtherFrame,
     flow_from,
     motion_from,
@@ -677,7 +678,9 @@ class Renderer(nn.Module):
                 a :class:`~torchraster.motion.OtherFrame`; needed by ``flow_forward`` and
                 ``flow_forward_valid``.
             previous_frame: likewise for the previous frame; needed by ``flow_backward``,
-                ``flow_backward_valid`` and ``motion``.
+                ``flow_backward_valid`` and ``motion``. For ``*_valid`` channels the frame's
+                visible depth is rasterized unless ``OtherFrame.depth`` is set, and stored
+                there (the same frame passed again is not rasterized again).
 
         Returns:
             :class:`RenderOutput` (image, alpha, requested G-buffer channels, plan).
@@ -699,6 +702,7 @@ class Renderer(nn.Module):
                                  "(use 1 to share)")
         for name, frame in frames.items():
             frame.check_against(name, positions.shape[-2], b)
+            frame.check_depth(name, plan.resolution, b)
         if self.max_batch is not None and b > self.max_batch:
             return self._forward_chunks(scene, view, proj, lights, environment, channels,
                                         frames, b)
@@ -842,7 +846,10 @@ class Renderer(nn.Module):
             args = (_scene_items(scene, sl, b), _items(view, sl, b), _items(proj, sl, b),
                     _lights_items(lights, sl, b), environment, channels)
             kwargs = {name: OtherFrame(_items(f.positions, sl, b, 3), _items(f.view, sl, b, 3),
-                                       _items(f.proj, sl, b, 3)) for name, f in frames.items()}
+                                       _items(f.proj, sl, b, 3),
+                                       None if f.depth is None else OtherDepth(
+                                           *(_items(t, sl, b) for t in f.depth)))
+                      for name, f in frames.items()}
             if torch.is_grad_enabled():  # keep only the chunk's outputs; recompute in backward
                 plans: list[RenderPlan] = []
                 names: list[str] = []
@@ -1140,7 +1147,8 @@ def _motion_channels(plan: RenderPlan, scene: RenderScene, layers: Sequence, gbs
     """Each layer's G-buffer with the requested flow / motion channels of its visible
     surface (:mod:`~torchraster.motion`). Flow is in output pixels (divided by the
     supersampling factor: the label reduction keeps one sub-sample); the other frame is
-    rasterized once per frame for validity, with the main pass's culling."""
+    rasterized once per frame for validity, with the main pass's culling (unless the frame
+    holds its depth already; the rasterized depth is stored on the frame)."""
     want = plan.requested
     extra: list[dict[str, torch.Tensor]] = [{} for _ in layers]
     dtype = scene.positions.dtype
@@ -1152,11 +1160,14 @@ def _motion_channels(plan: RenderPlan, scene: RenderScene, layers: Sequence, gbs
         frame = frames[name]
         other = None
         if valid_ch in want:
-            clip = transform_points(frame.positions, frame.proj @ frame.view)
-            other = other_frame_depth(clip if clip.dim() == 3 else clip[None], scene.faces,
-                                      plan.resolution, frame.proj,
-                                      cull_backfaces=_cull_mask(plan, scene),
-                                      face_ranges=face_ranges)
+            other = frame.depth
+            if other is None:  # stored on the frame: passing it again skips this raster
+                clip = transform_points(frame.positions, frame.proj @ frame.view)
+                other = other_frame_depth(clip if clip.dim() == 3 else clip[None], scene.faces,
+                                          plan.resolution, frame.proj,
+                                          cull_backfaces=_cull_mask(plan, scene),
+                                          face_ranges=face_ranges)
+                frame.depth = other
         for k, f in enumerate(layers):
             rep = reproject(f, scene.faces, frame.positions, frame.view, frame.proj)
             if flow_ch in want:

@@ -89,6 +89,10 @@ class _Instance:
     keypoints: torch.Tensor | None = None
 
 
+#: Times whose poses :class:`SceneObjects` keeps (a frame and its two neighbours, + 1).
+_POSES_KEPT = 4
+
+
 @dataclass
 class SceneObjects:
     """The instances of a config's scene (see the module docstring).
@@ -123,6 +127,9 @@ class SceneObjects:
     keypoints: list[torch.Tensor | None]
     _rest: list[torch.Tensor] = field(repr=False, default_factory=list)
     _keys: list[Keyframes | None] = field(repr=False, default_factory=list)
+    #: time -> posed tensors of the last few times (consecutive frames share their
+    #: neighbours: frame t's next frame is frame t + 1); not copied by ``replace``.
+    _poses: dict[float, dict] = field(repr=False, init=False, default_factory=dict)
 
     @property
     def num_objects(self) -> int:
@@ -141,10 +148,22 @@ class SceneObjects:
 
     def object_to_world(self, t: float) -> torch.Tensor:
         """``(N, 4, 4)`` float64 model -> world of every instance at time ``t`` seconds."""
-        entries = []
-        for rest, keys in zip(self._rest, self._keys, strict=True):
-            entries.append(rest.double() if keys is None else transform_at(keys, [t])[0])
-        return torch.stack([entries[e] for e in self.entry_of]) @ self.nodes.double()
+        return self._pose(t)["matrices"].clone()
+
+    def _pose(self, t: float) -> dict:
+        """The cache entry of time ``t`` (its matrices computed), the last few times kept."""
+        t = float(t)
+        entry = self._poses.pop(t, None)
+        if entry is None:
+            entries = []
+            for rest, keys in zip(self._rest, self._keys, strict=True):
+                entries.append(rest.double() if keys is None else transform_at(keys, [t])[0])
+            mats = torch.stack([entries[e] for e in self.entry_of]) @ self.nodes.double()
+            entry = {"matrices": mats}
+            while len(self._poses) >= _POSES_KEPT:
+                self._poses.pop(next(iter(self._poses)))  # the least recently used
+        self._poses[t] = entry  # (re)inserted last: most recently used
+        return entry
 
     def at(self, t: float) -> RenderScene:
         """The scene posed at time ``t``: world positions, normals and tangents of every
@@ -160,20 +179,28 @@ class SceneObjects:
         return self._posed(t, positions_only=True)["positions"]
 
     def _posed(self, t: float, positions_only: bool = False) -> dict:
-        mats = self.object_to_world(t).to(self.model_positions)
+        """World positions (and normals, tangents) at ``t``, cached per time (the returned
+        tensors are shared by calls at the same time: read-only)."""
+        entry = self._pose(t)
+        if "positions" in entry and (positions_only or "normals" in entry):
+            return {k: entry[k] for k in (("positions",) if positions_only else
+                                          ("positions", "normals", "tangents"))}
+        mats = entry["matrices"].to(self.model_positions)
         device = self.scene.positions.device if self.scene is not None else "cpu"
         pos, nrm, tan = [], [], []
         for (s, e), m in zip(self.vertex_ranges.tolist(), mats, strict=True):
-            pos.append(transform_points(self.model_positions[s:e], m)[:, :3])
+            if "positions" not in entry:
+                pos.append(transform_points(self.model_positions[s:e], m)[:, :3])
             if not positions_only:
                 nrm.append(transform_normals(self.model_normals[s:e], m))
                 if self.model_tangents is not None:
                     tan.append(transform_tangents(self.model_tangents[s:e], m))
-        out = {"positions": torch.cat(pos).to(device)}
+        if "positions" not in entry:
+            entry["positions"] = torch.cat(pos).to(device)
         if not positions_only:
-            out["normals"] = torch.cat(nrm).to(device)
-            out["tangents"] = torch.cat(tan).to(device) if tan else None
-        return out
+            entry["normals"] = torch.cat(nrm).to(device)
+            entry["tangents"] = torch.cat(tan).to(device) if tan else None
+        return self._posed(t, positions_only)
 
     def to(self, device: torch.device | str) -> SceneObjects:
         """The same objects with the scene on ``device`` (model data stays on the CPU)."""
