@@ -546,7 +546,9 @@ def _environment(gen: torch.Generator, dtype: torch.dtype, params: list[torch.Te
     return tr.Environment(rad, intensity=_pick(gen, (0.0, 1e-40, 1.0, 1e6)),
                           yaw=_rand(gen, -4.0, 4.0), diffuse=_pick(gen, ("map", "sh")),
                           specular_size=_pick(gen, (4, 16)), specular_levels=_randint(gen, 2, 5),
-                          specular_samples=_pick(gen, (1, 8)))
+                          specular_samples=_pick(gen, (1, 8)),
+                          specular=_pick(gen, ("split_sum", "fitted", "importance")),
+                          importance_samples=_pick(gen, (1, 4)))
 
 
 def _nonfinite(t: torch.Tensor | None) -> int:

@@ -230,3 +230,22 @@ outputs: {channels: [color]}
         assert main(["render", str(tmp_path / "a.yaml"), "--out", str(tmp_path / "out")]) == 0
     assert any("sees nothing" in r.getMessage() and "away" in r.getMessage()
                for r in caplog.records)
+
+
+@pytest.mark.parametrize("outputs, key", [
+    ("{channels: [color, instance], track_points: 8}", "outputs.track_points"),
+    ("{channels: [color], previews: true}", "outputs.previews"),
+])
+def test_options_that_would_do_nothing_are_errors(outputs, key):
+    text = f"scene:\n  objects: [{{primitive: box}}]\noutputs: {outputs}\n"
+    with pytest.raises(tr.ConfigError, match=rf"r\.yaml:\d+: {key}: "):
+        _cfg(text)
+
+
+def test_previews_are_written_whatever_the_formats(tmp_path):
+    text = ("scene:\n  objects: [{primitive: box, category: a}]\nrender: {resolution: 8}\n"
+            "outputs: {channels: [color, semantic], formats: [npy], previews: true}\n")
+    (tmp_path / "p.yaml").write_text(text)
+    assert main(["render", str(tmp_path / "p.yaml"), "--out", str(tmp_path / "out")]) == 0
+    assert (tmp_path / "out" / "p" / "semantic_preview.png").is_file()
+    assert not (tmp_path / "out" / "p" / "semantic.png").exists()

@@ -457,7 +457,7 @@ def write_outputs(result: ViewResult, out_dir: str | Path, formats: list[str],
         ids = name in _ID_CHANNELS
         raw = img.detach().cpu().to(torch.int32 if ids else torch.float32).numpy()
         img = img.detach().float().cpu()
-        if ids and previews and "png" in formats:
+        if ids and previews:  # previews are PNGs whatever the formats
             path = out_dir / f"{name}_preview.png"
             rgb = (id_preview(img).permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
             atomic_write(path, lambda p, a=rgb: skio.imsave(p, a, check_contrast=False))

@@ -94,6 +94,12 @@ def dataset_problems(cfg: RenderFile) -> list[str]:
         problems.append(f"{cfg.where('outputs', 'channels')}: {', '.join(flow)} "
                         f"{'needs' if len(flow) == 1 else 'need'} another frame; set "
                         "frames: {count: 2 or more, fps: ...}")
+    if "track_points" in cfg.outputs.model_fields_set and "tracks" not in cfg.outputs.exports:
+        problems.append(f"{cfg.where('outputs', 'track_points')}: used by the tracks export "
+                        "only; add tracks to outputs.exports or remove it")
+    if cfg.outputs.previews and not {"instance", "semantic"} & channels:
+        problems.append(f"{cfg.where('outputs', 'previews')}: previews colour the instance / "
+                        "semantic channels; add one to outputs.channels")
     for i, export in enumerate(cfg.outputs.exports):
         missing = EXPORT_NEEDS.get(export, set()) - channels
         if missing:
