@@ -40,10 +40,9 @@ import torch
 from .material import ImageTextureCache, Material, material_from_trimesh
 from .mesh import (
     Mesh,
+    bake_instances,
     face_normals,
-    transform_normals,
     transform_points,
-    transform_tangents,
     vertex_normals,
     vertex_tangents,
 )
@@ -149,43 +148,8 @@ class Scene:
 
 def _flatten(scene: Scene) -> tuple[Mesh, torch.Tensor, list[Material | None]]:
     """Flatten keeping None materials (see :meth:`Scene.flatten`)."""
-    index: dict[int, int] = {}
-    mats: list[Material | None] = []
-    pos, faces, nrm, uvs, tan, fmat = [], [], [], [], [], []
-    any_uv = any(m.uvs is not None for m in scene.meshes)
-    all_tan = all(m.tangents is not None for m in scene.meshes)
-    offset = 0
-    for mesh, matrix in zip(scene.meshes, scene.transforms, strict=True):
-        key = id(mesh.material)
-        if key not in index:
-            index[key] = len(mats)
-            mats.append(mesh.material)
-        f = mesh.faces
-        if bool(torch.linalg.det(matrix[:3, :3].double()) < 0):
-            f = f[:, [0, 2, 1]]  # glTF 2.0 spec: det < 0 means clockwise winding
-        pos.append(transform_points(mesh.positions, matrix)[:, :3])
-        normals = mesh.normals if mesh.normals is not None else vertex_normals(
-            mesh.positions, mesh.faces)
-        nrm.append(transform_normals(normals, matrix))
-        if any_uv:
-            uvs.append(mesh.uvs if mesh.uvs is not None else mesh.positions.new_zeros(
-                mesh.num_vertices, 2))
-        if all_tan:
-            tan.append(transform_tangents(mesh.tangents, matrix))
-        faces.append(f + offset)
-        fmat.append(torch.full((mesh.num_faces,), index[key], dtype=torch.int64,
-                               device=f.device))
-        offset += mesh.num_vertices
-    flat = Mesh(
-        positions=torch.cat(pos),
-        faces=torch.cat(faces),
-        normals=torch.cat(nrm),
-        uvs=torch.cat(uvs) if any_uv else None,
-        tangents=torch.cat(tan) if all_tan else None,
-        material=mats[0] if len(mats) == 1 else None,
-        name=scene.name,
-    )
-    return flat, torch.cat(fmat), mats
+    flat, face_material, mats = bake_instances(scene.meshes, scene.transforms)
+    return replace(flat, name=scene.name), face_material, mats
 
 
 # ------------------------------------------------------------------------------ loading

@@ -13,6 +13,7 @@ faces concatenated, with per-item ``[start, end)`` ranges.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import torch
@@ -545,6 +546,61 @@ def check_meshes(meshes: object) -> list[Mesh]:
     return list(meshes)
 
 
+def bake_instances(meshes: Sequence[Mesh], matrices: torch.Tensor, fill_normals: bool = True
+                   ) -> tuple[Mesh, torch.Tensor, list]:
+    """Mesh instances baked into one world-space mesh.
+
+    Positions by the matrices, normals by their inverse transpose (missing ones computed
+    first), tangents by the linear part (only if every mesh has them), UVs zero-filled where
+    a mesh has none; faces of mirroring instances (det < 0) re-wound to stay
+    counter-clockwise (glTF 2.0). Materials are merged by identity (None kept).
+
+    Args:
+        meshes: N model-space meshes. matrices: ``(N, 4, 4)`` model -> world.
+        fill_normals: compute missing normals even when no mesh has any (else the result
+            has none then).
+
+    Returns:
+        ``(mesh, face_material (F,) int64, materials)``; ``mesh.material`` is the material
+        when there is exactly one.
+    """
+    index: dict[int, int] = {}
+    mats: list = []
+    pos, faces, nrm, uvs, tan, fmat = [], [], [], [], [], []
+    want_nrm = fill_normals or any(m.normals is not None for m in meshes)
+    any_uv = any(m.uvs is not None for m in meshes)
+    all_tan = all(m.tangents is not None for m in meshes)
+    offset = 0
+    for mesh, matrix in zip(meshes, matrices, strict=True):
+        key = id(mesh.material)
+        if key not in index:
+            index[key] = len(mats)
+            mats.append(mesh.material)
+        f = mesh.faces
+        if bool(torch.linalg.det(matrix[:3, :3].detach().double()) < 0):
+            f = f[:, [0, 2, 1]]  # a mirror reverses the winding (glTF 2.0, det < 0)
+        faces.append(f + offset)
+        offset += mesh.num_vertices
+        pos.append(transform_points(mesh.positions, matrix)[:, :3])
+        if want_nrm:
+            normals = mesh.normals if mesh.normals is not None else vertex_normals(
+                mesh.positions, mesh.faces)
+            nrm.append(transform_normals(normals, matrix))
+        if any_uv:
+            uvs.append(mesh.uvs if mesh.uvs is not None else mesh.positions.new_zeros(
+                mesh.num_vertices, 2))
+        if all_tan:
+            tan.append(transform_tangents(mesh.tangents, matrix))
+        fmat.append(torch.full((mesh.num_faces,), index[key], dtype=torch.int64,
+                               device=f.device))
+    flat = Mesh(positions=torch.cat(pos), faces=torch.cat(faces),
+                normals=torch.cat(nrm) if want_nrm else None,
+                uvs=torch.cat(uvs) if any_uv else None,
+                tangents=torch.cat(tan) if all_tan else None,
+                material=mats[0] if len(mats) == 1 else None)
+    return flat, torch.cat(fmat), mats
+
+
 def pack_meshes(meshes: list[Mesh]) -> PackedMeshes:
     """Pack meshes of different topology into one vertex and face list.
 
@@ -599,4 +655,5 @@ __all__ = [
     "transform_tangents",
     "pack_meshes",
     "check_meshes",
+    "bake_instances",
 ]

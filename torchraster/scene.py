@@ -23,12 +23,9 @@ from ._validate import check_tensor
 from .material import Material
 from .mesh import (
     Mesh,
+    bake_instances,
     check_meshes,
     pack_meshes,
-    transform_normals,
-    transform_points,
-    transform_tangents,
-    vertex_normals,
 )
 
 
@@ -299,41 +296,14 @@ class RenderScene:
                 raise ValueError(f"categories: expected {n} non-negative category ids (one per "
                                  f"mesh), got {list(categories)}")
             category = torch.tensor([0, *cats], dtype=torch.int64, device=ref.device)
-        any_nrm = any(m.normals is not None for m in meshes)
-        any_uv = any(m.uvs is not None for m in meshes)
-        all_tan = all(m.tangents is not None for m in meshes)
-        index: dict[int, int] = {}
-        materials: list[Material | None] = []
-        pos, faces, nrm, uvs, tan, fmat, coords = [], [], [], [], [], [], []
-        offset = 0
-        for mesh, matrix in zip(meshes, matrices, strict=True):
-            index.setdefault(id(mesh.material), len(materials))
-            if index[id(mesh.material)] == len(materials):
-                materials.append(mesh.material)
-            f = mesh.faces
-            if bool(torch.linalg.det(matrix[:3, :3].detach().double()) < 0):
-                f = f[:, [0, 2, 1]]  # a mirror reverses the winding (glTF 2.0, det < 0)
-            faces.append(f + offset)
-            offset += mesh.num_vertices
-            pos.append(transform_points(mesh.positions, matrix)[:, :3])
-            if any_nrm:
-                normals = mesh.normals if mesh.normals is not None else vertex_normals(
-                    mesh.positions, mesh.faces)
-                nrm.append(transform_normals(normals, matrix))
-            if any_uv:
-                uvs.append(mesh.uvs if mesh.uvs is not None else mesh.positions.new_zeros(
-                    mesh.num_vertices, 2))
-            if all_tan:
-                tan.append(transform_tangents(mesh.tangents, matrix))
-            fmat.append(torch.full((mesh.num_faces,), index[id(mesh.material)],
-                                   dtype=torch.int64, device=ref.device))
-            coords.append(nocs_coords(mesh.positions))
+        baked, face_material, materials = bake_instances(meshes, matrices,
+                                                         fill_normals=False)
+        coords = [nocs_coords(mesh.positions) for mesh in meshes]
         counts = torch.tensor([m.num_faces for m in meshes], device=ref.device)
         face_object = torch.repeat_interleave(
             torch.arange(1, n + 1, device=ref.device), counts)
-        return cls(torch.cat(pos), torch.cat(faces), torch.cat(nrm) if any_nrm else None,
-                   torch.cat(uvs) if any_uv else None, torch.cat(tan) if all_tan else None,
-                   torch.cat(fmat) if len(materials) > 1 else None, materials,
+        return cls(baked.positions, baked.faces, baked.normals, baked.uvs, baked.tangents,
+                   face_material if len(materials) > 1 else None, materials,
                    face_object=face_object, object_category=category,
                    object_coords=torch.cat(coords))
 
