@@ -386,22 +386,15 @@ def load_scene(
         not isinstance(max_texture_size, int) or max_texture_size < 1
     ):
         raise ValueError(f"max_texture_size: expected a positive int, got {max_texture_size!r}")
-    missing = missing_textures(p)
-    if missing and not allow_missing_textures:
-        raise MeshFileError(f"{p}: texture file(s) not found: {', '.join(missing)} (pass "
-                            "allow_missing_textures=True / --allow-missing-textures to render "
-                            "without them)")
-    if missing:
-        log.warning("%s: texture file(s) not found, rendering without them: %s", p,
-                    ", ".join(missing))
-    unusable = unusable_textures(p)
-    if unusable and not allow_missing_textures:
-        raise MeshFileError(f"{p}: texture file(s) cannot be used: {', '.join(unusable)} "
-                            "(pass allow_missing_textures=True / --allow-missing-textures to "
-                            "render without them)")
-    if unusable:
-        log.warning("%s: texture file(s) cannot be used, rendering without them: %s", p,
-                    ", ".join(unusable))
+    for problem, names in (("not found", missing_textures(p)),
+                           ("cannot be used", unusable_textures(p))):
+        if names and not allow_missing_textures:
+            raise MeshFileError(f"{p}: texture file(s) {problem}: {', '.join(names)} (pass "
+                                "allow_missing_textures=True / --allow-missing-textures to "
+                                "render without them)")
+        if names:
+            log.warning("%s: texture file(s) %s, rendering without them: %s", p, problem,
+                        ", ".join(names))
     try:
         if p.suffix.lower() == ".obj":  # decode ourselves: any encoding, no charset detector
             with open(p, "rb") as fh:
