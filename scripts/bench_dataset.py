@@ -131,6 +131,41 @@ def whole_run(ranks: int, scenes: int) -> dict:
         return result
 
 
+def blender_text(python: str | None, frames: int, fps: float) -> str:
+    """The Blender anchor: measured now with ``python`` (a Python with ``bpy``) on the same
+    kind of scene (scripts/blender_movi.py), or the figures quoted by issue 20."""
+    if python is None:
+        return ("Anchor (quoted from issue 20, measured on this kind of machine with Blender "
+                "5.0.1 as a Python module, a MOVi-like scene of 8 objects, sun + HDR, 256², "
+                "passes Combined, Depth, Normal, IndexOB, Vector, Cryptomatte): Cycles CPU "
+                "0.75 / 1.58 / 5.10 s a frame at 1 / 16 / 64 samples, 0.14 s with persistent "
+                "data at 1 sample (noisy); Workbench 0.029 s but colour and depth only. "
+                "Blender's IndexOB is one sample at the pixel centre; its Vector pass blends "
+                "over samples at edges. Not re-measured in this run (`--blender PYTHON`).\n")
+    res = subprocess.run([python, str(ROOT / "scripts" / "blender_movi.py"),
+                          "--frames", str(min(frames, 6))], capture_output=True, text=True,
+                         check=True, cwd=ROOT)
+    got = json.loads(res.stdout.strip().splitlines()[-1])
+    names = {"cycles1": "Cycles CPU, 1 sample", "cycles1_persistent":
+             "Cycles CPU, 1 sample, persistent data", "cycles16": "Cycles CPU, 16 samples",
+             "cycles64": "Cycles CPU, 64 samples",
+             "workbench": "Workbench (colour and depth only; no lighting of the HDR)"}
+    rows = [[names[k], f"{got[k] * 1e3:.0f} ms", f"{1 / got[k]:.2f}", f"{got[k] * fps:.1f}x"]
+            for k in names if k in got]
+    print(markdown_table(["Blender " + got["bpy"], "per frame", "frames / s",
+                          "Blender time / ours"], rows))
+    return ("Blender, measured in this run (`scripts/blender_movi.py`: Blender "
+            f"{got['bpy']} as a Python module, 2 threads; the same kind of scene: 8 objects from "
+            "Spot, boxes and spheres on a floor, random Principled materials, sun + the same "
+            "HDR, orbiting camera, objects moving, 256²; passes Combined, Depth, Normal, "
+            "IndexOB, Vector, Cryptomatte written as multilayer EXR; median over "
+            f"{min(frames, 6)} frames after a warm-up frame). *Blender time / ours* = Blender's "
+            "time a frame over our in-process labelled frame above. Blender's IndexOB is one "
+            "sample at the pixel centre; its Vector pass blends over samples at edges.\n\n"
+            + markdown_table(["Blender " + got["bpy"], "per frame", "frames / s",
+                              "Blender time / ours"], rows) + "\n")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--frames", type=int, default=12, help="frames per in-process timing")
@@ -138,6 +173,8 @@ def main() -> None:
     ap.add_argument("--scenes", type=int, default=1, help="scenes of the whole runs")
     ap.add_argument("--skip-runs", action="store_true", help="no whole-run rows")
     ap.add_argument("--no-write", action="store_true", help="print only")
+    ap.add_argument("--blender", metavar="PYTHON", help="a Python with bpy: time Blender on "
+                    "the same kind of scene in the same run (scripts/blender_movi.py)")
     args = ap.parse_args()
     import torchraster as tr
 
@@ -169,12 +206,7 @@ def main() -> None:
         "ratios).\n\n" + markdown_table(["channel", "colour frame", "added by the label"], costs)
         + "\n\nWhole labelled frames:\n\n"
         + markdown_table(["how", "processes", "frames / s", "per frame", "peak RSS"], rows)
-        + "\n\nAnchor (quoted from issue 20, measured on this kind of machine with Blender 5.0.1 "
-        "as a Python module, a MOVi-like scene of 8 objects, sun + HDR, 256², passes Combined, "
-        "Depth, Normal, IndexOB, Vector, Cryptomatte): Cycles CPU 0.75 / 1.58 / 5.10 s a frame "
-        "at 1 / 16 / 64 samples, 0.14 s with persistent data at 1 sample (noisy); Workbench "
-        "0.029 s but colour and depth only. Blender's IndexOB is one sample at the pixel "
-        "centre; its Vector pass blends over samples at edges. Not re-measured here.\n")
+        + "\n\n" + blender_text(args.blender, args.frames, fps))
     if not args.no_write:
         update_section("dataset", body)
 

@@ -29,6 +29,9 @@ distinct storages).
     python scripts/bench_memory.py --label before          # the grid + breakdown (~6 min)
     python scripts/bench_memory.py --label after           # the same, "after" in the doc
     python scripts/bench_memory.py --rows "forward 1 512 8" --no-doc
+    python scripts/bench_memory.py --label after --merge --no-breakdown \
+        --rows "shadows 1024 512 8" "shadows 2048 512 8" "shadows 4096 512 1" \
+        --source "what changed"          # re-measure rows, keep the label's others
 
 Results are kept per label in ``docs/bench_memory.json`` so the section shows both.
 The machine is shared (2 cores): the measurement is memory, which other processes do not
@@ -316,7 +319,7 @@ def _label(r: dict) -> str:
     if kind in ("shade", "forward", "fwd+bwd"):
         return f"{kind}, {n} light{'s' * (n > 1)}"
     if kind == "shadows":
-        return f"forward, cube map {n}²"
+        return f"forward, cube map {n}²" + (" †" if r.get("source") else "")
     return {"post": "forward + bloom + tone map"}.get(kind, kind)
 
 
@@ -368,6 +371,9 @@ def write_doc(results: dict) -> None:
         if not res:
             continue
         parts += ["", f"### {label}", "", res.get("source", ""), "", _grid_table(res["grid"])]
+        later = list(dict.fromkeys(r["source"] for r in res["grid"] if r.get("source")))
+        if later:
+            parts += ["", "† measured later (`--merge`): " + "; ".join(later)]
         for bd in res.get("breakdown", []):
             what = "forward + backward" if bd["backward"] else "forward (no_grad)"
             shadow = f", the light casting a {bd['shadow']}² cube map" if bd.get("shadow") else ""
@@ -392,6 +398,9 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--no-breakdown", action="store_true")
     ap.add_argument("--no-doc", action="store_true")
+    ap.add_argument("--merge", action="store_true",
+                    help="replace only the measured rows in the label's stored grid (and "
+                         "the breakdowns only if measured); --source is kept per row")
     args = ap.parse_args()
     if args.worker:
         fn, spec = args.worker
@@ -433,8 +442,19 @@ def main() -> None:
     if args.no_doc:
         return
     results = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
-    results[args.label] = {"source": args.source, "grid": rows,
-                           "breakdown": [b for b in bds if "error" not in b]}
+    if args.merge and args.label in results:
+        old = results[args.label]
+
+        def key(r: dict) -> tuple:
+            return r["kind"], r["n"], r["res"], r["batch"]
+
+        fresh = {key(r): {**r, "source": args.source} for r in rows}
+        grid = [fresh.pop(key(r), r) for r in old["grid"]] + list(fresh.values())
+        results[args.label] = {**old, "grid": grid, "breakdown": [
+            b for b in bds if "error" not in b] or old.get("breakdown", [])}
+    else:
+        results[args.label] = {"source": args.source, "grid": rows,
+                               "breakdown": [b for b in bds if "error" not in b]}
     RESULTS.write_text(json.dumps(results, indent=1) + "\n")
     write_doc(results)
 

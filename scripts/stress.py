@@ -30,7 +30,9 @@ zero-area triangle), rendered forward and backward through ``tr.Renderer``:
   intensities 0 to 1e6, both diffuse methods, shown as background or not;
 - grazing: all of the above at random, cameras edge-on to the plane (elevation 0 or 1e-4
   degrees) and from below it, supersampling, SSAO, every texture filter, every shading
-  model, float64.
+  model, float64. These four kinds draw edge antialiasing (``edge_supersample`` 2 or
+  3) in 30 % of the scenes where it is implemented (opaque materials, no SSAO, SSR, fog
+  or dissolve).
 - labels: the label channels (instance, semantic, object_coords, distance, amodal, face_id)
   of the same stage as three objects, in float32, float64, float16 or bfloat16, supersampled
   1x to 3x, batch 1-2 (with face_ranges dropping an object), sometimes a MASK cut-out; the
@@ -48,7 +50,16 @@ zero-area triangle), rendered forward and backward through ``tr.Renderer``:
   flow's gradient exceeds float16's range in rasterize's float16 backward (a known limit).
 - half: the stage in float16 / bfloat16 with float textures (up to 300 texels), a sun
   (sometimes straight down) and a spot light casting shadows with every filter, every
-  texture filter, antialiasing on or off.
+  texture filter, antialiasing on or off, else edge antialiasing (``edge_supersample``
+  1 to 3).
+- far: the stage, its cameras (batch 1-2) and its lights (a sun with 1-3 cascades, a spot
+  and a point light, shadows of a random filter) moved together by 0 to 1e7 m in a random
+  direction (the hard case of camera-relative rendering), float64 world positions (float32
+  in a quarter of the scenes: rounded already, checked for NaN/Inf only), fog (its base
+  height moved alike) or a dissolve (offset a multiple of the noise period) at random,
+  supersampling and antialiasing; the same scene is rendered at the origin, and each
+  float64 scene counts as "far-away errors" the face ids that differ beyond 3 pixels + 1 %
+  of the covered ones and the world ``position`` channel off by more than float32 rounding.
 Any kind may also draw screen-space reflections, fog with light shafts (densities 0 to 50,
 height falloffs 0 to 20, light path on or off), a dissolve (threshold 0, 0.3 or 1) and the
 multiscatter switch.
@@ -69,6 +80,7 @@ spot, and their difference.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import sys
 import time
@@ -366,7 +378,7 @@ def picture(path: Path) -> None:
 
 
 # ------------------------------------------------------------------------------- renderer
-R_KINDS = ("material", "light", "environment", "grazing", "labels", "motion", "half")
+R_KINDS = ("material", "light", "environment", "grazing", "labels", "motion", "half", "far")
 #: Hostile magnitudes: zero, a float32 denormal, tiny, one, huge.
 HOSTILE = (0.0, 1e-40, 1e-6, 1.0, 1e6)
 R_COLUMNS = [
@@ -377,7 +389,7 @@ R_COLUMNS = [
     ("nonfinite_grad_lights", "NaN/Inf grad lights"),
     ("nonfinite_grad_environment", "NaN/Inf grad environment"),
     ("grad_values", "gradient values checked"), ("label_errors", "label errors"),
-    ("motion_errors", "motion errors"),
+    ("motion_errors", "motion errors"), ("far_errors", "far-away errors"),
     ("motion_f16_overflow", "float16 flow grad overflow (known, not counted)"),
     ("rejected", "rejected (ValueError/TypeError)"), ("exceptions", "exceptions"),
 ]
@@ -548,7 +560,8 @@ def _environment(gen: torch.Generator, dtype: torch.dtype, params: list[torch.Te
                           specular_size=_pick(gen, (4, 16)), specular_levels=_randint(gen, 2, 5),
                           specular_samples=_pick(gen, (1, 8)),
                           specular=_pick(gen, ("split_sum", "fitted", "importance")),
-                          importance_samples=_pick(gen, (1, 4)))
+                          importance_samples=_pick(gen, (1, 4)),
+                          sun_threshold=_pick(gen, (None, None, 0.5, 10.0)))
 
 
 def _nonfinite(t: torch.Tensor | None) -> int:
@@ -576,6 +589,8 @@ def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
     """One hostile render forward and backward (see the module docstring for the kinds)."""
     if kind == "half":
         return scene_half(gen, c)
+    if kind == "far":
+        return scene_far(gen, c)
     wild = kind == "grazing"
     dtype = torch.float64 if wild and _chance(gen, 0.25) else torch.float32
     positions, faces, uvs, face_material = _stage(gen, dtype)
@@ -619,9 +634,14 @@ def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
         gen, (0.0, 1e-6, 0.5, 20.0)), steps=_randint(gen, 1, 8),
         light_transmittance=_chance(gen, 0.8)) if _chance(gen, 0.15) else None
     dissolve = tr.Dissolve(threshold=_pick(gen, (0.0, 0.3, 1.0))) if _chance(gen, 0.1) else None
+    supersample = _pick(gen, (1, 2)) if wild else 1
+    # edge antialiasing where it is implemented (opaque materials, none of the passes below)
+    edge = _pick(gen, (2, 3)) if _chance(gen, 0.3) and supersample == 1 and all(
+        x is None for x in (ssao, ssr, fog, dissolve)) and all(
+        m.alpha_mode == "OPAQUE" for m in materials) else 1
     renderer = tr.Renderer(
-        res, shading=shading,
-        supersample=_pick(gen, (1, 2)) if wild else 1, cull_backfaces=_chance(gen, 0.3),
+        res, shading=shading, supersample=supersample, edge_supersample=edge,
+        cull_backfaces=_chance(gen, 0.3),
         texture_filter=_pick(gen, ("trilinear", "bilinear", "nearest", "anisotropic")),
         ssao=ssao, ssr=ssr, fog=fog, dissolve=dissolve, multiscatter=_chance(gen, 0.8),
         environment_background=_chance(gen, 0.5))
@@ -681,7 +701,9 @@ def scene_half(gen: torch.Generator, c: Counter) -> None:
     proj = tr.camera.perspective(_rand(gen, 20.0, 90.0), res[1] / res[0], 0.01).to(dtype)
     settings = tr.shading.shadows.ShadowSettings(
         map_size=_pick(gen, (32, 128)), filter=_pick(gen, tr.shading.shadows.FILTERS))
-    renderer = tr.Renderer(res, antialias=_chance(gen, 0.5), shadow_settings=settings,
+    antialias = _chance(gen, 0.5)
+    renderer = tr.Renderer(res, antialias=antialias, shadow_settings=settings,
+                           edge_supersample=1 if antialias else _pick(gen, (1, 2, 3)),
                            texture_filter=_pick(gen, ("trilinear", "bilinear", "nearest",
                                                       "anisotropic")),
                            max_batch=_pick(gen, (None, 1)))  # chunked batches too
@@ -822,6 +844,104 @@ def scene_motion(gen: torch.Generator, scene: tr.RenderScene, c: Counter) -> Non
     # pixels) exceeds float16's range in rasterize's float16 backward; counted apart
     key = "motion_f16_overflow" if dtype == torch.float16 else "nonfinite_grad_positions"
     c[key] += _nonfinite(grad)
+
+
+def _far_lights(gen: torch.Generator, offset: torch.Tensor, leaves: list[torch.Tensor]
+                ) -> tr.Lights:
+    """A sun (1-3 cascades), a spot and a point light, all casting shadows of one random
+    filter, float64; the local lights placed relative to ``offset`` (leaves: gradients)."""
+    d = torch.float64
+    filt = _pick(gen, tr.shading.shadows.FILTERS)
+    size = _pick(gen, (32, 128))
+    sun_s = tr.shading.shadows.ShadowSettings(map_size=size, filter=filt,
+                                              cascades=_randint(gen, 1, 3))
+    local_s = tr.shading.shadows.ShadowSettings(map_size=size, filter=filt)
+    sun = torch.tensor([[[_rand(gen, -0.6, 0.6), -1.0, _rand(gen, -0.6, 0.6)]]], dtype=d)
+    spot = torch.tensor([_rand(gen, -1.5, 1.5), 2.5, _rand(gen, -1.5, 1.5)], dtype=d)
+    point = torch.tensor([_rand(gen, -1.5, 1.5), _rand(gen, 0.3, 2.0), _rand(gen, -1.5, 1.5)],
+                         dtype=d)
+    sun, spot, point = (t.requires_grad_(True) for t in (sun, spot, point))
+    leaves += [sun, spot, point]
+    yes = torch.tensor([[True]])
+    one = torch.ones(1, 1, 3, dtype=d)
+    return tr.Lights(
+        ambient=tr.sh_from_color(torch.full((1, 3), 0.05, dtype=d)),
+        directional=tr.DirectionalLights(sun, one, torch.full((1, 1), 3.0, dtype=d),
+                                         cast_shadows=yes, shadow=sun_s),
+        spot=tr.SpotLights((spot + offset)[None, None], torch.tensor([[[0.0, -1.0, 0.0]]],
+                                                                     dtype=d),
+                           one, torch.full((1, 1), 20.0, dtype=d), cast_shadows=yes,
+                           shadow=local_s),
+        point=tr.PointLights((point + offset)[None, None], one,
+                             torch.full((1, 1), 5.0, dtype=d), cast_shadows=yes,
+                             shadow=local_s))
+
+
+def scene_far(gen: torch.Generator, c: Counter) -> None:
+    """The stage, cameras and lights moved together far from the origin (module
+    docstring), rendered there and at the origin; forward and backward."""
+    dtype = torch.float32 if _chance(gen, 0.25) else torch.float64
+    base, faces, uvs, face_material = _stage(gen, torch.float64)
+    direction = torch.randn(3, generator=gen, dtype=torch.float64)
+    offset = direction / direction.norm() * _pick(gen, (0.0, 1e3, 1e5, 1e6, 1e7))
+    fog = dissolve = None
+    if _chance(gen, 0.3):
+        fog = tr.Fog(density=_pick(gen, (1e-3, 0.3)), height_falloff=_pick(gen, (0.0, 0.5)),
+                     steps=_randint(gen, 1, 4), light_transmittance=_chance(gen, 0.7))
+    elif _chance(gen, 0.3):
+        dissolve = tr.Dissolve(threshold=0.3)
+        period = tr.dissolve.PERIOD / dissolve.scale  # the same pattern at the origin
+        offset = torch.round(offset / period) * period
+    b = _randint(gen, 1, 2)
+    view0 = tr.camera.orbit(torch.tensor([_rand(gen, 0.0, 360.0) for _ in range(b)]),
+                            torch.tensor([_rand(gen, 10.0, 60.0) for _ in range(b)]),
+                            torch.tensor([_rand(gen, 1.5, 6.0) for _ in range(b)]),
+                            torch.tensor([0.0, 0.3, 0.0])).double()
+    move = torch.eye(4, dtype=torch.float64)
+    move[:3, 3] = -offset
+    res = (_randint(gen, 8, 40), _randint(gen, 8, 40))
+    proj = tr.camera.perspective(_rand(gen, 20.0, 90.0), res[1] / res[0], 0.01)
+    kw = dict(shading="pbr", supersample=_pick(gen, (1, 2)), antialias=_chance(gen, 0.3),
+              dissolve=dissolve)
+    outs = []
+    seed = int(torch.randint(0, 2**31, (1,), generator=gen))  # the same lights twice
+    for shift in (offset, torch.zeros(3, dtype=torch.float64)):
+        positions = (base + shift).to(dtype).requires_grad_(True)
+        leaves = [positions]
+        lights = _far_lights(torch.Generator().manual_seed(seed), shift, leaves)
+        f = fog if fog is None else dataclasses.replace(
+            fog, base_height=float(fog.base_height) + float(shift[1]))
+        view = view0 @ (move if shift is offset else torch.eye(4, dtype=torch.float64))
+        if dtype == torch.float32 and shift is not offset:
+            view = view.float()  # the plain float32 render at the origin
+        scene = tr.RenderScene(positions, faces, uvs=uvs.float(), face_material=face_material,
+                               materials=[tr.Material(), tr.Material(roughness_factor=0.3)])
+        out = tr.Renderer(res, fog=f, **kw)(scene, view, proj, lights,
+                                            channels=("face_id", "position"))
+        c["covered"] += int((out.alpha > 0).sum())
+        c["nonfinite_image"] += _nonfinite(out.image)
+        c["nonfinite_alpha"] += _nonfinite(out.alpha)
+        c["nonfinite_gbuffer"] += sum(_nonfinite(v) for v in out.gbuffer.values())
+        loss = (out.image * torch.randn(out.image.shape, generator=gen)).sum()
+        grads = torch.autograd.grad(loss, leaves, allow_unused=True)
+        c["grad_values"] += sum(g.numel() for g in grads if g is not None)
+        c["nonfinite_grad_positions"] += _nonfinite(grads[0])
+        c["nonfinite_grad_lights"] += sum(_nonfinite(g) for g in grads[1:])
+        outs.append(out)
+    if dtype != torch.float64:
+        return  # float32 positions far away are rounded already: finiteness only
+    far, near = outs
+    fid, fid0 = far.gbuffer["face_id"], near.gbuffer["face_id"]
+    covered = int((fid0 >= 0).sum())
+    c["far_errors"] += max(0, int((fid != fid0).sum()) - 3 - covered // 100)
+    if kw["supersample"] > 1:
+        return  # box-filtered positions: the covered fraction is not known per pixel
+    same = (fid == fid0) & (fid >= 0)
+    mask = (fid >= 0).to(torch.float64)
+    world = near.gbuffer["position"].double() + offset.view(1, 3, 1, 1) * mask
+    err = (far.gbuffer["position"].double() - world).abs()
+    tol = 1e-3 + 4 * torch.finfo(torch.float32).eps * float(offset.abs().max())
+    c["far_errors"] += int((err > tol)[same.expand_as(err)].sum())
 
 
 def main() -> int:

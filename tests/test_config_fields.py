@@ -510,6 +510,7 @@ VARIATIONS: dict[str, tuple[dict, dict]] = {
     "render.shading": ({}, {"render": {"shading": "unlit"}}),
     "render.background": ({}, {"render": {"background": [0.5, 0.2, 0.1]}}),
     "render.supersample": ({}, {"render": {"supersample": 2}}),
+    "render.edge_supersample": ({}, {"render": {"edge_supersample": 2}}),
     "render.cull_backfaces": ({"cameras": [INSIDE]}, {"cameras": [INSIDE],
                                                       "render": {"cull_backfaces": True}}),
     "render.texture_filter": ({}, {"render": {"texture_filter": "nearest"}}),
@@ -557,6 +558,9 @@ VARIATIONS: dict[str, tuple[dict, dict]] = {
         {**PBR, "environment": {"path": "sky.hdr", "specular": "importance"}},
         {**PBR, "environment": {"path": "sky.hdr", "specular": "importance",
                                 "importance_samples": 2}}),
+    "environment.sun_threshold": ({**PBR, "environment": {"path": "sky.hdr"}},
+                                  {**PBR, "environment": {"path": "sky.hdr",
+                                                          "sun_threshold": 1.5}}),
     # materials
     "materials.match": _material(match="no such material"),
     "materials.base_color": _material(base_color=[0.1, 0.2, 1.0]),

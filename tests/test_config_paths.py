@@ -162,3 +162,58 @@ def test_reference_says_what_leaving_out_post_means():
     assert not tr.config.build_post(no_post).tonemap.enabled
     assert tr.config.build_post(empty_post).tonemap.enabled
     assert tr.config.build_post(empty_post).tonemap.curve == "aces"
+
+
+def test_reference_states_every_bound():
+    """Every constrained key's row in the reference states its bounds (the pydantic
+    constraints of the field as well as of its annotation; the field's own were left out
+    before), and a stated bound is what loading enforces."""
+    from torchraster.config.reference import _bounds_text, _models_in
+
+    text = tr.config.config_reference()
+    seen: list = []
+    rows = 0
+
+    def visit(model) -> None:
+        nonlocal rows
+        if model in seen:
+            return
+        seen.append(model)
+        section = text[text.index(f"## {model.__name__}\n"):]
+        section = section[:section.find("\n## ") if "\n## " in section else None]
+        for name, field in model.model_fields.items():
+            bounds = _bounds_text(field.metadata)
+            if bounds and not field.exclude:
+                row = next(r for r in section.splitlines() if r.startswith(f"| `{name}` |"))
+                assert bounds in row, (model.__name__, name, row)
+                rows += 1
+            for sub in _models_in(field.annotation):
+                visit(sub)
+
+    visit(tr.config.RenderFile)
+    assert rows > 100
+    with pytest.raises(tr.ConfigError, match="size"):  # 'float > 0' is what it says
+        tr.parse_config("scene:\n  objects:\n    - {primitive: box, size: 0}\n")
+
+
+@pytest.mark.parametrize("where", ["object", "override"])
+def test_unreadable_texture_names_the_config_key(tmp_path, where):
+    """A texture file that exists but is no image: the error names the file:line: key of
+    the config and the image file (not a traceback from the image reader)."""
+    from torchraster.config import build_objects
+
+    (tmp_path / "notes.png").write_text("not an image")
+    obj = "    - {name: ball, primitive: sphere, size: 1"
+    if where == "object":
+        text = f"scene:\n  objects:\n{obj}, material: {{base_color_texture: notes.png}}}}\n"
+        key = "3: scene.objects.0.material.base_color_texture"
+    else:
+        text = (f"scene:\n  objects:\n{obj}}}\nmaterials:\n"
+                "  - {match: '*', base_color_texture: notes.png}\n")
+        key = "5: materials.0.base_color_texture"
+    cfg = tr.parse_config(text, "t.yaml", base_dir=tmp_path)
+    with pytest.raises(tr.ConfigError) as err:
+        build_objects(cfg)
+    msg = str(err.value)
+    assert msg.startswith("t.yaml:") and key in msg and "notes.png" in msg, msg
+    assert "cannot read as an image" in msg

@@ -64,13 +64,13 @@ def _same(a: pipeline.ViewResult, b: pipeline.ViewResult) -> None:
 
 def _counting(monkeypatch) -> list[int]:
     calls = [0]
-    real = renderer_mod.other_frame_depth
+    real = renderer_mod.rasterize
 
     def counted(*args, **kwargs):
         calls[0] += 1
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(renderer_mod, "other_frame_depth", counted)
+    monkeypatch.setattr(renderer_mod, "rasterize", counted)
     return calls
 
 
@@ -81,8 +81,9 @@ def test_frames_in_order_equal_fresh_renders(cfg, monkeypatch):
     render = pipeline.view_renderer(config)
     for v, ref in zip(views, fresh, strict=True):
         _same(render(v.camera_config, v.folder, v.frame), ref)
-    # frames 0 and 1 rasterize both other frames, later ones only the next frame
-    assert calls[0] == 2 + 2 + (len(views) - 2)
+    # frame 0 rasterizes itself and both other frames, frame 1 both other frames (its own
+    # raster was kept from frame 0's flow validity), later ones only the next frame
+    assert calls[0] == 3 + 2 + (len(views) - 2)
     assert bool((fresh[2].images["flow_backward_valid"] == 0).any())  # occlusion happens
     # any order gives the same images (reverse order: nothing reusable from the last frame)
     for v, ref in zip(views[::-1], fresh[::-1], strict=True):
@@ -124,9 +125,10 @@ def test_renderer_stores_and_reuses_depth(monkeypatch):
     calls = _counting(monkeypatch)
     frame = OtherFrame(shifted, eye, eye)
     a = rend(scene, eye, eye, channels=chans, next_frame=frame)
+    # its own raster only: the other frame's was kept from the call before (same content)
     assert calls[0] == 1 and isinstance(frame.depth, OtherDepth)
-    b = rend(scene, eye, eye, channels=chans, next_frame=frame)  # reused
-    assert calls[0] == 1
+    b = rend(scene, eye, eye, channels=chans, next_frame=frame)  # the stored depth reused
+    assert calls[0] == 2
     # a depth computed by hand (independent of the renderer's call) gives the same too
     clip = torch.cat([shifted, torch.ones(7, 1)], 1)[None]
     given = OtherFrame(shifted, eye, eye, other_frame_depth(clip, scene.faces, (16, 16), eye))

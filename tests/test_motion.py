@@ -5,6 +5,8 @@ casting (torchraster.testing.raytrace) for visibility, gradcheck in float64."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -381,3 +383,77 @@ def test_bad_input_errors():
         optical_flow(frags, mesh.faces, mesh.positions, view.expand(2, 4, 4), proj)
     with pytest.raises(TypeError, match="frags: expected Fragments"):
         optical_flow(None, mesh.faces, mesh.positions, view, proj)
+
+
+def test_neighbour_raster_is_reused_and_changes_nothing(monkeypatch):
+    """Frame t's flow validity rasterizes frame t + 1; rendering t + 1 next (same positions,
+    camera and options, no gradients) reuses that raster instead of rasterizing again, and
+    gives exactly what a fresh renderer gives for t + 1 alone."""
+    import torchraster.renderer as renderer_module
+
+    mesh, view, proj, nxt, _ = _spot_frames()
+    after = OtherFrame(nxt.positions + torch.tensor([0.05, 0.0, -0.1]),
+                       tr.camera.look_at([0.8, 0.3, 2.4], [0.0, 0.0, 0.0]), proj)
+    here = OtherFrame(mesh.positions, view, proj)
+    calls = []
+    real = renderer_module.rasterize
+    monkeypatch.setattr(renderer_module, "rasterize",
+                        lambda *a, **k: calls.append(1) or real(*a, **k))
+    r = tr.Renderer((H, W), shading="unlit")
+    want = ["flow_forward", "flow_forward_valid", "flow_backward_valid", "depth", "normal"]
+    scene = tr.RenderScene.from_mesh(mesh)
+    with torch.no_grad():
+        r(scene, view, proj, channels=["flow_forward_valid"], next_frame=nxt)
+        assert len(calls) == 2  # its own raster and frame t + 1's
+        second = dataclasses.replace(scene, positions=nxt.positions)
+        got = r(second, nxt.view, nxt.proj, channels=want, next_frame=after,
+                previous_frame=here)
+        assert len(calls) == 4  # frames t + 2 and t: its own raster was kept
+        fresh = tr.Renderer((H, W), shading="unlit")(
+            second, nxt.view, nxt.proj, channels=want,
+            next_frame=OtherFrame(after.positions, after.view, after.proj),
+            previous_frame=OtherFrame(mesh.positions, view, proj))
+    assert torch.equal(got.image, fresh.image) and torch.equal(got.alpha, fresh.alpha)
+    for name in want:
+        assert torch.equal(got.gbuffer[name], fresh.gbuffer[name]), name
+    # with gradients the main pass never takes a kept raster (it has no graph)
+    pos = nxt.positions.clone().requires_grad_(True)
+    r(dataclasses.replace(scene, positions=pos), nxt.view, nxt.proj).image.sum().backward()
+    assert len(calls) == 8 and pos.grad.abs().sum() > 0  # 3 fresh, 1 here
+
+
+def test_face_depth_slope_matches_finite_differences():
+    """``face_depth_slope`` (the gradient of the point's own face's linear depth per pixel
+    of the other frame) against central differences of the other frame's rasterized linear
+    depth, on a tilted plane, float64; 0 outside ``where``."""
+    from torchraster.motion import face_depth_slope, linear_depth
+
+    dt = torch.float64
+    plane = torch.tensor([[-1.0, -1, 0], [1, -1, -1.5], [1, 1, -1.5], [-1, 1, 0]], dtype=dt)
+    faces = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    proj = tr.camera.perspective(50.0, W / H, 0.1).to(dt)
+    view = tr.camera.look_at([0.0, 0.0, 3.0], [0.0, 0.0, 0.0]).to(dt)
+    other_view = tr.camera.look_at([0.5, 0.3, 2.8], [0.0, 0.0, -0.5]).to(dt)
+    frags = _frags(plane, faces, view, proj)
+    rep = reproject(frags, faces, plane, other_view, proj)
+    where = torch.ones(1, 1, H, W, dtype=torch.bool)
+    where[..., : W // 4] = False
+    slope = face_depth_slope(frags, faces, plane, other_view, proj, where)
+    assert slope.shape == (1, 2, H, W) and (slope[..., : W // 4] == 0).all()
+    other = _frags(plane, faces, other_view, proj)
+    d = linear_depth(other.depth, proj)[0]  # (H, W) float64
+    fd_x = (d[:, 2:] - d[:, :-2]) / 2  # at columns 1 .. W-2
+    fd_y = (d[2:] - d[:-2]) / 2
+    col = torch.floor(rep.pixel[0, 0] + 0.5).long()
+    row = torch.floor(rep.pixel[0, 1] + 0.5).long()
+    inner = (rep.inside[0, 0] & where[0, 0] & (col > 1) & (col < W - 2) & (row > 1)
+             & (row < H - 2))
+    assert int(inner.sum()) > 100
+    r, c = row[inner], col[inner]
+    finite = torch.isfinite(fd_x[r, c - 1]) & torch.isfinite(fd_y[r - 1, c])
+    got_x, got_y = slope[0, 0][inner][finite], slope[0, 1][inner][finite]
+    # the slope at the point vs the difference across the nearest centre (half a pixel away
+    # at most): equal to the curvature of depth over one pixel
+    torch.testing.assert_close(got_x, fd_x[r, c - 1][finite], rtol=0.02, atol=1e-4)
+    torch.testing.assert_close(got_y, fd_y[r - 1, c][finite], rtol=0.02, atol=1e-4)
+    assert float(got_x.abs().mean()) > 1e-3  # a tilted plane: the test can fail

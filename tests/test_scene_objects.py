@@ -65,3 +65,26 @@ def test_posed_vertices_are_the_pose_applied_to_the_model(objects):
     nocs = objects.scene.object_coords
     assert float(nocs.min()) >= 0 and float(nocs.max()) <= 1
     assert objects.scene.face_object.unique().tolist() == [1, 2]
+
+
+def test_prepared_times_pose_the_same():
+    """``prepare`` (the keyframes of all frames in one evaluation) gives the poses, vertices
+    and normals of posing each time alone; the normals are the inverse-transposed model
+    normals (numpy)."""
+    times = [0.0, 0.4, 1.5, 2.5]
+    alone = build_objects(tr.parse_config(CONFIG))
+    ahead = build_objects(tr.parse_config(CONFIG))
+    ahead.prepare(times)
+    assert set(ahead._prepared) == set(times)
+    for t in times:
+        np.testing.assert_allclose(ahead.object_to_world(t), alone.object_to_world(t),
+                                   rtol=0, atol=1e-12)
+        a, b = ahead.at(t), alone.at(t)
+        np.testing.assert_allclose(a.positions, b.positions, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(a.normals, b.normals, rtol=0, atol=1e-6)
+        mats = alone.object_to_world(t).numpy()
+        model = alone.model_normals.double().numpy()
+        for (s, e), m in zip(alone.vertex_ranges.tolist(), mats, strict=True):
+            n = model[s:e] @ np.linalg.inv(m[:3, :3])
+            n /= np.linalg.norm(n, axis=1, keepdims=True)
+            assert np.allclose(b.normals[s:e].double().numpy(), n, atol=1e-5)

@@ -10,7 +10,8 @@ of the command; each joins the process group (gloo, from torchrun's environment:
    :mod:`torchraster.manifest`), each rank a strided slice, and gathers the result;
 3. splits the views still to render into N contiguous blocks (neighbouring views share an
    object, so each rank loads few scenes): rank r renders block r, writing each view's files
-   atomically and appending its record to the rank's own shard file;
+   atomically and appending its record to the rank's own shard file (one writer thread
+   per rank writes view i, files then record, while view i + 1 renders);
 4. shows, on rank 0 only, the global progress (views done / total, views per second, ETA),
    from an asynchronous ``all_reduce`` of the ranks' counts after each view;
 5. waits for every rank (barrier); rank 0 merges the shards into ``manifest.jsonl``.
@@ -34,6 +35,7 @@ import traceback
 import warnings
 from collections import deque
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -407,34 +409,63 @@ def _render_group(group: list[_Job], dc: DatasetConfig, obj: pipeline.ObjectPlan
         return 0, len(group)
     written = failed = 0
     cfg_hash = group[0].expected["config_hash"]
-    for job, render in zip(group, renders, strict=True):
-        spec = job.spec
+
+    def report(spec: pipeline.ViewSpec, e: Exception) -> None:
+        nonlocal failed
+        failed += 1
+        name = f"object {spec.object}, camera {spec.camera}" if "/" in spec.folder else (
+            f"camera {spec.camera}")
+        say(f"{prefix}torchraster: error: {dc.path} [{name}]: {_one_line(e)}")
+        if show_traceback:
+            say("".join(traceback.format_exception(e)))
+
+    def store(job: _Job, result: pipeline.ViewResult, render_s: float) -> list[Path]:
+        """Write a view's files, then its record (in the writer thread)."""
+        t1 = time.perf_counter()
+        files = pipeline.write_outputs(result, out_dir / job.key, cfg.outputs.formats,
+                                       cfg.outputs.previews)
+        shard.append(manifest.view_record(
+            key=job.key, config=dc.name, config_file=dc.path, cfg=obj.config,
+            cfg_hash=cfg_hash, spec=job.spec, mesh=obj.mesh, result=result, files=files,
+            out_dir=out_dir, timings={"render_s": render_s, "write_s": time.perf_counter() - t1},
+            rank=world.rank, drawn=obj.drawn))
+        return files
+
+    def finish(job: _Job, result: pipeline.ViewResult, future: Future) -> None:
+        nonlocal written
         try:
-            t0 = time.perf_counter()
-            result = seeded_call(spec.seed, render)
-            t1 = time.perf_counter()
-            folder = out_dir / job.key
-            files = pipeline.write_outputs(result, folder, cfg.outputs.formats,
-                                           cfg.outputs.previews)
-            t2 = time.perf_counter()
-            shard.append(manifest.view_record(
-                key=job.key, config=dc.name, config_file=dc.path, cfg=obj.config,
-                cfg_hash=cfg_hash, spec=spec, mesh=obj.mesh, result=result, files=files,
-                out_dir=out_dir, timings={"render_s": t1 - t0, "write_s": t2 - t1},
-                rank=world.rank, drawn=obj.drawn))
+            files = future.result()
             written += 1
             if verbose:
-                say(f"{prefix}{dc.path} [{spec.folder or spec.camera}]: {result.plan}")
+                say(f"{prefix}{dc.path} [{job.spec.folder or job.spec.camera}]: {result.plan}")
                 for p in files:
                     say(str(p))
         except Exception as e:  # noqa: BLE001 (one bad view never stops the others)
-            failed += 1
-            name = f"object {spec.object}, camera {spec.camera}" if "/" in spec.folder else (
-                f"camera {spec.camera}")
-            say(f"{prefix}torchraster: error: {dc.path} [{name}]: {_one_line(e)}")
-            if show_traceback:
-                say(traceback.format_exc())
+            report(job.spec, e)
         bar.step()
+
+    # one writer thread: view i's files are written while view i + 1 renders (files, then
+    # the record, in view order, as before; at most one view waits to be written)
+    pending: tuple | None = None
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="torchraster-write") as writer:
+        for job, render in zip(group, renders, strict=True):
+            try:
+                t0 = time.perf_counter()
+                result = seeded_call(job.spec.seed, render)
+                render_s = time.perf_counter() - t0
+            except Exception as e:  # noqa: BLE001 (one bad view never stops the others)
+                if pending is not None:
+                    finish(*pending)
+                    pending = None
+                report(job.spec, e)
+                bar.step()
+                continue
+            future = writer.submit(store, job, result, render_s)
+            if pending is not None:
+                finish(*pending)
+            pending = (job, result, future)
+        if pending is not None:
+            finish(*pending)
     return written, failed
 
 

@@ -12,7 +12,8 @@ Channels (0 where nothing is covered unless said otherwise):
 name       shape        meaning
 =========  ===========  =====================================================================
 depth      (B, 1, H, W) linear view depth (distance along the view axis); 0 where empty
-position   (B, 3, H, W) world position
+position   (B, 3, H, W) world position (camera-relative renders add the origin back in the
+                        render's dtype: float32 rounds a world coordinate of 1e6 by up to 0.03)
 normal     (B, 3, H, W) unit world shading normal (normal map applied), facing the camera
 albedo     (B, 3, H, W) linear base colour (factor x texture)
 alpha      (B, 1, H, W) base colour alpha (coverage x material alpha)

@@ -40,7 +40,14 @@ lands on (the nearest pixel centre). The point is visible iff
   (per-pixel depth derivatives of the other frame's map). The derivatives are the smaller
   one-sided difference on each axis (at a silhouette, the side on the same surface), and
   ``SLOPE_FACTOR = 0.75`` is that 0.5 with a 1.5 margin for the curvature of depth along
-  perspective rays and for creases. Grazing surfaces get a large tolerance, as they should.
+  perspective rays. Grazing surfaces get a large tolerance, as they should.
+* the own-surface term ``|g . delta|``: ``delta`` is the point's exact offset from that
+  centre and ``g`` the screen-space gradient of its own face's depth in the other frame
+  (exact: ``1 / w`` and ``depth / w`` are affine in screen space over a triangle). Where the
+  centre sees the point's own face, ``d = z - g . delta`` exactly; across a convex crease the
+  other face lies behind that plane, so ``d >= z - g . delta``. Without it, the last row of a
+  grazing face before a crease (whose centre sees the face beyond it, with a small slope)
+  was flagged occluded.
 
 Limits: the other frame is depth-tested as opaque (glTF MASK cut-outs and BLEND surfaces
 occlude like solid ones, as in shadow maps); an occluder narrower than about two pixels in
@@ -49,6 +56,7 @@ the other frame may be missed (its own one-sided differences are its silhouettes
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -247,6 +255,59 @@ def reproject(frags: Fragments, faces: torch.Tensor, other_positions: torch.Tens
     return Reprojection(pixel, ndc, depth, front, inside)
 
 
+def face_depth_slope(frags: Fragments, faces: torch.Tensor, other_positions: torch.Tensor,
+                     other_view: torch.Tensor, other_proj: torch.Tensor,
+                     where: torch.Tensor) -> torch.Tensor:
+    """The gradient of the linear depth of each pixel's own face per pixel of the other
+    frame (column, row), at the pixels ``where`` ``(B, 1, H, W)`` bool (0 elsewhere).
+
+    Over a triangle ``q = 1 / w`` and ``r = depth / w`` are affine in screen space, so
+    ``d = r / q`` has the gradient ``w (g_r - d g_q)`` at the point, whose clip ``w`` and
+    depth are its barycentric combinations of the corners'. 0 where a corner has ``w <= 0``
+    or the face is seen edge-on there. No gradient.
+
+    Returns:
+        ``(B, 2, H, W)`` in the compute dtype.
+    """
+    b, h, w = frags.face_id.shape
+    dtype = compute_dtype(other_positions, frags.bary_packed)
+    with torch.no_grad():
+        out = torch.zeros(b, 2, h * w, dtype=dtype, device=frags.face_id.device)
+        item, pix = (where.view(b, -1) & (frags.face_id.view(b, -1) >= 0)).nonzero(
+            as_tuple=True)
+        if item.numel() == 0:
+            return out.view(b, 2, h, w)
+        pos = _to(_batched(other_positions.detach()), dtype)
+        view = _to(_batched(other_view.detach()), dtype)
+        proj = _to(_batched(other_proj.detach()), dtype)
+        eye = transform_points(pos, view)
+        clip = transform_points(pos, proj @ view)
+        corner = faces.index_select(0, frags.face_id.view(b, -1)[item, pix])  # (N, 3)
+        src = (item if clip.shape[0] == b else torch.zeros_like(item))[:, None]
+        c, lin = clip[src, corner], -eye[..., 2][src, corner]  # (N, 3, 4), (N, 3)
+        bary = frags.bary.reshape(b, -1, 3)[item, pix].to(dtype)  # (N, 3)
+        wv = c[..., 3]
+        ok = (wv > 0).all(-1)
+        q = 1 / torch.where(wv > 0, wv, torch.ones_like(wv))
+        px = (c[..., 0] * q + 1) * (w / 2)  # screen position in pixels (column, row):
+        py = (1 - c[..., 1] * q) * (h / 2)  # the offsets of pixel centres cancel
+        e1x, e1y = px[:, 1] - px[:, 0], py[:, 1] - py[:, 0]
+        e2x, e2y = px[:, 2] - px[:, 0], py[:, 2] - py[:, 0]
+        det = e1x * e2y - e2x * e1y
+        ok = ok & (det.abs() > 1e-6 * (e1x.abs() + e1y.abs()) * (e2x.abs() + e2y.abs()))
+        inv = torch.where(ok, 1 / torch.where(ok, det, torch.ones_like(det)),
+                          torch.zeros_like(det))
+
+        def gradient(v: torch.Tensor) -> torch.Tensor:  # (N, 2) of a value affine on screen
+            d1, d2 = v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]
+            return torch.stack([(d1 * e2y - d2 * e1y) * inv, (e1x * d2 - e2x * d1) * inv], 1)
+
+        w_at, d_at = (bary * wv).sum(1, keepdim=True), (bary * lin).sum(1, keepdim=True)
+        grad = w_at * (gradient(lin * q) - d_at * gradient(q))
+        out[item, :, pix] = torch.where(torch.isfinite(grad), grad, torch.zeros_like(grad))
+        return out.view(b, 2, h, w)
+
+
 def flow_from(rep: Reprojection) -> torch.Tensor:
     """Optical flow ``(B, 2, H, W)`` (pixels, x right, y down) of a :class:`Reprojection`:
     its landing position minus each pixel's centre, 0 where not ``front``."""
@@ -346,19 +407,13 @@ def _slope(depth: torch.Tensor) -> torch.Tensor:
     """``|dd/dx| + |dd/dy|`` ``(B, H, W)`` per pixel of a linear depth map ``(B, H, W)``:
     on each axis the smaller one-sided difference (the side on the same surface at a
     silhouette); 0 where neither side is finite."""
-    inf = float("inf")
-
     def axis(d: torch.Tensor, dim: int) -> torch.Tensor:
         pad = [0, 0, 1, 1] if dim == 1 else [1, 1]
-        p = torch.nn.functional.pad(d, pad, value=inf)
+        p = torch.nn.functional.pad(d, pad, value=float("inf"))
         n = d.shape[dim]
-        prev, nxt = p.narrow(dim, 0, n), p.narrow(dim, 2, n)
-        both = []
-        for other in (prev, nxt):
-            ok = torch.isfinite(other) & torch.isfinite(d)
-            both.append(torch.where(ok, (other - torch.where(ok, d, 0)).abs(),
-                                    torch.full_like(d, inf)))
-        g = torch.minimum(*both)
+        # a difference with an empty side is inf (or NaN: both empty): fmin takes the
+        # other side, and a pixel with neither side finite gets 0
+        g = torch.fmin((p.narrow(dim, 0, n) - d).abs(), (p.narrow(dim, 2, n) - d).abs())
         return torch.where(torch.isfinite(g), g, torch.zeros_like(g))
 
     return axis(depth, 2) + axis(depth, 1)
@@ -388,14 +443,26 @@ def other_frame_depth(other_clip: torch.Tensor, faces: torch.Tensor,
     with torch.no_grad():
         ndc_depth = rasterize_depth(other_clip.detach(), faces, resolution, cull_backfaces,
                                     face_ranges)
-        seen = linear_depth(ndc_depth, _batched(other_proj))
+        return other_depth(ndc_depth, other_proj)
+
+
+def other_depth(ndc_depth: torch.Tensor, other_proj: torch.Tensor) -> OtherDepth:
+    """The :class:`OtherDepth` of the other frame's rasterized NDC depth ``(B, H, W)``
+    (``+inf`` where empty; e.g. ``rasterize(...).depth``), ``other_proj`` its projection
+    ``(B or 1, 4, 4)`` or ``(4, 4)``. No gradient."""
+    with torch.no_grad():
+        seen = linear_depth(ndc_depth.detach(), _batched(other_proj.detach()))
         return OtherDepth(seen, _slope(seen))
 
 
 def validity_from(rep: Reprojection, other: OtherDepth,
-                  depth_tolerance: float = DEPTH_TOLERANCE) -> torch.Tensor:
+                  depth_tolerance: float = DEPTH_TOLERANCE, *,
+                  own_slope: Callable[[torch.Tensor], torch.Tensor] | None = None
+                  ) -> torch.Tensor:
     """Flow validity ``(B, 1, H, W)`` float {0, 1} of a :class:`Reprojection` against the
-    other frame's visible depth (see :func:`flow_validity`)."""
+    other frame's visible depth (see :func:`flow_validity`). ``own_slope(where)`` gives the
+    depth gradient of the points' own faces (:func:`face_depth_slope`) at the pixels the
+    test would reject; without it the own-face term is left out."""
     b, _, h, w = rep.pixel.shape
     with torch.no_grad():
         seen, slope = (t.expand(b, h, w) for t in other)
@@ -406,6 +473,13 @@ def validity_from(rep: Reprojection, other: OtherDepth,
         s = slope.reshape(b, -1).gather(1, flat).view(b, 1, h, w)
         z = rep.depth.detach().to(torch.float64)
         visible = z <= d + depth_tolerance * z.abs() + SLOPE_FACTOR * s
+        doubt = rep.inside & ~visible
+        if own_slope is not None and bool(doubt.any()):  # the point's own face across its
+            offset = rep.pixel.detach().to(torch.float64) - torch.stack(  # offset from the
+                [col, row], 1).to(torch.float64)  # centre, where the test above fails only
+            g = own_slope(doubt).to(torch.float64)
+            visible = visible | (doubt & (z <= d + depth_tolerance * z.abs() + SLOPE_FACTOR * s
+                                          + (g * offset).sum(1, keepdim=True).abs()))
         return (rep.inside & visible).to(rep.depth.dtype)
 
 
@@ -438,10 +512,11 @@ def flow_validity(frags: Fragments, faces: torch.Tensor, other_positions: torch.
     h, w = frags.face_id.shape[1:]  # a shared other frame (batch 1) is rasterized once
     other = other_frame_depth(clip, faces, (h, w), other_proj, cull_backfaces=cull_backfaces,
                               face_ranges=face_ranges)
-    return validity_from(rep, other, depth_tolerance)
+    return validity_from(rep, other, depth_tolerance, own_slope=lambda where: face_depth_slope(
+        frags, faces, other_positions, other_view, other_proj, where))
 
 
 __all__ = ["DEPTH_TOLERANCE", "MOTION_CHANNELS", "NDC_LIMIT", "SLOPE_FACTOR", "OtherDepth",
-           "OtherFrame", "Reprojection", "flow_from", "flow_validity", "linear_depth",
-           "motion_from", "motion_vectors", "optical_flow", "other_frame_depth", "reproject",
-           "validity_from"]
+           "OtherFrame", "Reprojection", "face_depth_slope", "flow_from", "flow_validity",
+           "linear_depth", "motion_from", "motion_vectors", "optical_flow", "other_depth",
+           "other_frame_depth", "reproject", "validity_from"]

@@ -313,6 +313,7 @@ def view_renderer(cfg: RenderFile, device: str | torch.device = "cpu"
     if any(k is not None for k in objects.keypoints):
         channels.add("depth")
     dt = 1.0 / cfg.frames.fps
+    objects.prepare([f * dt for f in range(-1, cfg.frames.count + 1)])  # frames, neighbours
 
     # the other frames of the last few renders by (camera, frame): frame f's next frame is
     # frame f + 2's previous one, so its depth (rasterized for flow validity and stored on

@@ -34,6 +34,7 @@ import torch.nn.functional as F
 from torch import nn
 from torch.utils.checkpoint import checkpoint
 
+from . import edge_aa, relative
 from ._validate import check_bool, check_int, check_resolution, check_tensor
 from .anisotropic import check_max_anisotropy
 from .background import FITS, fit_background
@@ -45,18 +46,19 @@ from .motion import (
     MOTION_CHANNELS,
     OtherDepth,
     OtherFrame,
+    face_depth_slope,
     flow_from,
     motion_from,
-    other_frame_depth,
+    other_depth,
     reproject,
     validity_from,
 )
 from .numerics import finish_low_precision, safe_normalize
 from .post.ssr import environment_specular, specular_weight
-from .raster import antialias, rasterize
+from .raster import Fragments, antialias, rasterize
 from .raster.rasterize import rasterize_depth
 from .scene import RenderScene, as_render_scene
-from .shading.ibl import Environment, shade_ibl
+from .shading.ibl import Environment, content_key, shade_ibl
 from .shading.lighting import shade
 from .shading.lights import Lights
 from .shading.models import get_model
@@ -160,6 +162,14 @@ class RenderPlan:
         chunks: the batch sizes of the consecutive calls a batch larger than
             ``Renderer(max_batch=...)`` was split into, filled in by ``forward``
             (step ``"batch B in K chunks of <= max_batch"``); empty when it ran in one call.
+        edge_supersample: per-axis factor k of the edge antialiasing pass
+            (:mod:`~torchraster.edge_aa`, ``Renderer(edge_supersample=k)``; 1 = off).
+        edge_pixels: how many pixels (whole batch) that pass re-shaded at k x k
+            sub-samples, filled in by ``forward`` (step ``"edge supersample kx: N pixels"``;
+            None before).
+        origin: the world point the render was computed relative to
+            (``Renderer(camera_relative=...)``, :mod:`~torchraster.relative`), filled in by
+            ``forward`` (step ``"camera-relative origin (x, y, z)"``); None when not.
 
     Iterating a plan yields its human-readable :attr:`steps`.
     """
@@ -189,6 +199,9 @@ class RenderPlan:
     amodal: int = 0
     motion: tuple[str, ...] = ()
     chunks: tuple[int, ...] = ()
+    edge_supersample: int = 1
+    edge_pixels: int | None = None
+    origin: tuple[float, float, float] | None = None
 
     @property
     def steps(self) -> list[str]:
@@ -200,6 +213,9 @@ class RenderPlan:
         if self.chunks:
             steps.insert(0, f"batch {sum(self.chunks)} in {len(self.chunks)} chunks of "
                             f"<= {max(self.chunks)}")
+        if self.origin is not None:
+            steps.insert(0, "camera-relative origin ({:.9g}, {:.9g}, {:.9g})".format(
+                *self.origin))
         if self.amodal:
             steps.append(f"amodal {self.amodal} objects")
         steps += list(self.motion)
@@ -232,6 +248,10 @@ class RenderPlan:
         steps += list(self.fog)
         if self.antialias:
             steps.append("antialias")
+        if self.edge_supersample > 1:
+            k = self.edge_supersample
+            count = "" if self.edge_pixels is None else f": {self.edge_pixels} pixels"
+            steps.append(f"edge supersample {k}x{count}")
         if self.supersample > 1:
             steps.append(f"downsample {self.supersample}x")
         return steps
@@ -332,6 +352,15 @@ class Renderer(nn.Module):
             :func:`~torchraster.shading.models.toon`); a name the model does not take
             raises a ValueError naming it.
         supersample: render at ``s x`` the resolution and box-filter down (anti-aliasing).
+        edge_supersample: antialias edges only (:mod:`torchraster.edge_aa`): the frame is
+            rendered at 1x, the scene rasterized again at ``k x`` the resolution, and the
+            pixels on geometric edges (silhouettes, occlusion edges, creases, material
+            boundaries) and shadow edges are shaded at their ``k x k`` sub-samples through
+            the same passes and box-filtered (``image`` and ``alpha``; labels and the
+            G-buffer stay the 1x frame's). 1 = off, up to 8. Not combined with
+            ``supersample > 1`` or ``antialias`` (ValueError); not implemented with
+            ``ssao``, ``ssr``, ``fog``, ``dissolve`` or glTF ``MASK`` / ``BLEND`` materials
+            (NotImplementedError naming them). ``out.plan.edge_pixels`` counts the pixels.
         cull_backfaces: drop clockwise (back-facing) triangles.
         background: RGB (3 non-negative finite floats) of empty pixels; replaced by the
             environment when ``environment_background``.
@@ -388,6 +417,21 @@ class Renderer(nn.Module):
             and other frames of batch B, a ``(B, 3, h, w)`` background image, a ``(B,)``
             dissolve threshold); an environment with per-item radiance, rotation or
             intensity raises NotImplementedError. ``out.plan.chunks`` reports the split.
+        camera_relative: render in coordinates centred at the batch's mean eye
+            (:mod:`torchraster.relative`): positions minus that origin are computed in
+            float64 and then cast, the view, point / spot lights, other frames, fog and
+            dissolve shifted alike; the ``position`` channel is returned in world space (in
+            the compute dtype, so far from the origin it carries that dtype's absolute
+            rounding). None (default): automatic, when float64 positions meet a float32
+            projection (rendered in float32), a float64 view meets a float32 projection,
+            or the farthest eye is more than ``relative.FAR_RATIO`` (256) times the
+            largest of the scene's extent, the eye's distance to the scene and the near
+            plane from the origin; a scene near the origin is rendered exactly as with
+            False (``out.plan.origin`` is None; else the origin, step
+            ``camera-relative origin (x, y, z)``). Results come
+            out in the positions' dtype, except float64 positions with a float32 projection
+            under camera-relative rendering: float32. float32 positions far from the origin
+            warn (their rounding cannot be undone; pass float64).
 
     Example:
         >>> import torchraster as tr
@@ -405,6 +449,7 @@ class Renderer(nn.Module):
         shading: str = "pbr",
         shading_options: Mapping[str, Any] | None = None,
         supersample: int = 1,
+        edge_supersample: int = 1,
         cull_backfaces: bool = False,
         background: Sequence[float] = (0.0, 0.0, 0.0),
         environment_background: bool = True,
@@ -423,6 +468,7 @@ class Renderer(nn.Module):
         multiscatter: bool = True,
         dissolve: Dissolve | None = None,
         max_batch: int | None = None,
+        camera_relative: bool | None = None,
     ) -> None:
         super().__init__()
         self.resolution = check_resolution(resolution)
@@ -471,6 +517,7 @@ class Renderer(nn.Module):
                                 f"None, got {type(module).__name__}")
         self.ssao = ssao if ssao is not None and getattr(ssao, "enabled", True) else None
         self.ssr = ssr if ssr is not None and getattr(ssr, "enabled", True) else None
+        self._raster_memo = _RasterMemo()
         self.mip_cache = MipCache(check_int("mip_cache_bytes", mip_cache_bytes, 0))
         if shadow_settings is not None and not isinstance(shadow_settings, ShadowSettings):
             raise TypeError(f"shadow_settings: expected a ShadowSettings or None, got "
@@ -493,7 +540,29 @@ class Renderer(nn.Module):
             raise TypeError(f"dissolve: expected a torchraster.dissolve.Dissolve or None, got "
                             f"{type(dissolve).__name__}")
         self.dissolve = dissolve
+        self.edge_supersample = self._check_edge_supersample(edge_supersample)
         self.max_batch = None if max_batch is None else check_int("max_batch", max_batch, 1)
+        if camera_relative is not None:
+            check_bool("camera_relative", camera_relative)
+        self.camera_relative = camera_relative
+        self.world_origin: torch.Tensor | None = None  # set on the inner camera-relative copy
+
+    def _check_edge_supersample(self, k: object) -> int:
+        """``edge_supersample`` checked against the other options (set before it)."""
+        k = check_int("edge_supersample", k, 1, edge_aa.MAX_EDGE_SUPERSAMPLE)
+        if k == 1:
+            return k
+        if self.supersample > 1:
+            raise ValueError(f"edge_supersample: not combined with supersample="
+                             f"{self.supersample} (use one of them)")
+        if self.antialias:
+            raise ValueError("edge_supersample: not combined with antialias=True (both "
+                             "antialias edges; use one of them)")
+        for name in ("ssao", "ssr", "fog", "dissolve"):
+            if getattr(self, name) is not None:
+                raise NotImplementedError(f"edge_supersample: not implemented with {name}= "
+                                          f"yet; use supersample instead")
+        return k
 
     def plan(self, scene: RenderScene, lights: Lights | None = None,
              environment: Environment | None = None, channels: Iterable[str] = ()
@@ -522,7 +591,15 @@ class Renderer(nn.Module):
         alpha = "blend" if "BLEND" in modes else "mask" if "MASK" in modes else "none"
         if self.dissolve is not None:
             alpha = "mask" if alpha == "none" else alpha  # discarded surfaces show what is behind
+        if self.edge_supersample > 1 and alpha != "none":
+            raise NotImplementedError(f"edge_supersample: not implemented with glTF "
+                                      f"{alpha.upper()} materials yet; use supersample instead")
         ssr = self._plan_ssr(scene, shading, alpha)
+        if ssr and environment is not None and environment.sun_threshold is not None:
+            raise NotImplementedError(
+                "Environment(sun_threshold=...): screen-space reflections read the "
+                "environment's specular where their rays miss, which holds the map without "
+                "its extracted sun; use sun_threshold=None with Renderer(ssr=...)")
         _check_label_fields(scene, requested)
         channels = (set(requested) - {"amodal"}) | _SHADING_NEEDS[shading] | (
             {"depth"} if ssao or ssr else set())
@@ -572,7 +649,7 @@ class Renderer(nn.Module):
             ibl_specular=environment.specular_mode if environment is not None
             else "split_sum", ssr=ssr,
             amodal=scene.num_objects if "amodal" in requested else 0,
-            motion=_motion_steps(requested))
+            motion=_motion_steps(requested), edge_supersample=self.edge_supersample)
 
     def _plan_ssr(self, scene: RenderScene, shading: str, alpha: str) -> bool:
         """SSR runs for ``"pbr"`` when some material may be smoother than the cut-off."""
@@ -688,6 +765,10 @@ class Renderer(nn.Module):
         scene = as_render_scene(scene)
         view = _check_camera("view", view)
         proj = _check_camera("proj", proj)
+        shift = relative.plan_shift(self.camera_relative, scene.positions, view, proj)
+        if shift is not None:  # far from the origin: render camera-relative (relative.py)
+            return relative.render(self, shift, scene, view, proj, lights, environment,
+                                   channels, next_frame, previous_frame)
         plan = self.plan(scene, lights, environment, channels)
         frames = _check_frames(plan.requested, next_frame=next_frame,
                                previous_frame=previous_frame)
@@ -707,15 +788,12 @@ class Renderer(nn.Module):
             return self._forward_chunks(scene, view, proj, lights, environment, channels,
                                         frames, b)
         view, proj = view.expand(b, 4, 4), proj.expand(b, 4, 4)
-        clip = transform_points(positions, (proj @ view).to(positions.dtype))
-        if clip.shape[0] != b:
-            clip = clip.expand(b, -1, -1)
+        clip = _clip_positions(positions, view, proj, b)
         face_ranges = scene.face_ranges
         if face_ranges is not None and face_ranges.shape[0] != b:
             face_ranges = face_ranges.expand(b, 2)
-        frags = rasterize(clip, scene.faces, plan.resolution,
-                          cull_backfaces=_cull_mask(plan, scene), face_ranges=face_ranges,
-                          derivatives=plan.derivatives, layers=plan.layers)
+        frags = self._raster_memo.rasterize(clip, scene.faces, plan, _cull_mask(plan, scene),
+                                            face_ranges)
         normals = scene.normals
         if "normal" in plan.channels and normals is None:
             normals = vertex_normals(positions, scene.faces)
@@ -729,17 +807,21 @@ class Renderer(nn.Module):
                              object_coords=scene.object_coords)
                for f in layers]
         if plan.motion:  # per layer: the alpha modes then select them like the other channels
-            gbs = _motion_channels(plan, scene, layers, gbs, frames, face_ranges)
+            gbs = _motion_channels(plan, scene, layers, gbs, frames, face_ranges, b,
+                                   self._raster_memo)
         eye = camera_position(view.to(positions.dtype))
         groups = None
         if plan.shadow_lights:
             groups, lights_b = self._shadow_maps(plan, scene, view, proj, lights, b, face_ranges)
             plan = replace(plan, shadow_maps=tuple(st for g in groups for st in g.steps))
 
+        hooks: list = []  # the shadow hook of each radiance_of call (edge antialiasing)
+
         def radiance_of(gb: GBuffer, face_id: torch.Tensor,
                         glow: torch.Tensor | None = None) -> torch.Tensor:
             hook = None if groups is None else self._shadow_hook(groups, lights_b, scene, gb,
                                                                  face_id, view, b)
+            hooks.append(hook)
             if plan.fog and lights is not None and self.fog.light_transmittance:
                 hook = surface_light_hook(self.fog, lights, gb.position, gb.mask, hook)
             rad = self._shade(plan, gb, view, proj, eye, lights, environment, hook)
@@ -811,7 +893,13 @@ class Renderer(nn.Module):
             both = antialias(torch.cat([image, alpha.to(image.dtype)], 1), visible, clip,
                              scene.faces)
             image, alpha = both[:, :3], both[:, 3:]
+        if plan.edge_supersample > 1:  # re-shade the edge pixels at k x k sub-samples
+            image, alpha, plan = self._edge_pass(plan, scene, clip, face_ranges, normals, view,
+                                                 proj, radiance_of, hooks[0], background,
+                                                 environment, image, alpha)
         outputs = GBuffer(**{ch: getattr(gb, ch) for ch in plan.requested})
+        if self.world_origin is not None:  # camera-relative: the position channel in world
+            outputs = relative.world_position(outputs, gb.mask, self.world_origin)
         if "amodal" in plan.requested:
             outputs = outputs.replace(amodal=_amodal_masks(plan, scene, clip, face_ranges, b))
         if plan.supersample > 1:
@@ -838,6 +926,7 @@ class Renderer(nn.Module):
             # the modules, buffers and caches, holds the chunk's items and splits no further
             inner = copy.copy(self)
             inner.max_batch = None
+            inner.camera_relative = False  # decided (and applied) once for the whole batch
             if self.background_image is not None and self.background_image.shape[0] == b:
                 inner.background_image = self.background_image[sl]
             threshold = None if self.dissolve is None else self.dissolve.threshold
@@ -870,6 +959,8 @@ class Renderer(nn.Module):
         shadow_maps = tuple(dict.fromkeys(st for o in outs for st in o.plan.shadow_maps))
         plan = replace(outs[0].plan, shadow_maps=shadow_maps,
                        chunks=tuple(o.image.shape[0] for o in outs))
+        if plan.edge_pixels is not None:
+            plan = replace(plan, edge_pixels=sum(o.plan.edge_pixels for o in outs))
         return RenderOutput(image=torch.cat([o.image for o in outs]),
                             alpha=torch.cat([o.alpha for o in outs]),
                             gbuffer={k: torch.cat([o.gbuffer[k] for o in outs])
@@ -993,12 +1084,63 @@ class Renderer(nn.Module):
                                                  projection=proj.to(depth.dtype)))
         ibl = None
         if plan.ibl:
-            def ibl(n, v, a, m, r):
-                return shade_ibl(n, v, a, m, r, None, environment,
-                                 multiscatter=plan.multiscatter)
+            def ibl(n, v, a, m, r):  # the covered pixels only (the rest is 0, as after
+                return shade_ibl(n, v, a, m, r, None, environment,  # the mask below)
+                                 multiscatter=plan.multiscatter, mask=gb.mask)
         return shade(gb, camera_position=eye, lights=lights, model=self.model, ibl=ibl,
                      multiscatter=plan.multiscatter,
                      visibility=visibility)
+
+    def _edge_pass(self, plan: RenderPlan, scene: RenderScene, clip: torch.Tensor,
+                   face_ranges: torch.Tensor | None, normals: torch.Tensor | None,
+                   view: torch.Tensor, proj: torch.Tensor, radiance_of, hook,
+                   background: torch.Tensor, environment: Environment | None,
+                   image: torch.Tensor, alpha: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor, RenderPlan]:
+        """Edge antialiasing (:mod:`~torchraster.edge_aa`): rasterize at ``k x``, flag the
+        edge pixels (geometric edges of the ``k x`` raster, shadow edges of the 1x frame's
+        visibility ``hook``), shade their sub-samples packed ``(B, C, 1, M)`` by
+        ``radiance_of`` and put each pixel's mean in ``image`` / ``alpha``."""
+        k = plan.edge_supersample
+        h, w = plan.resolution
+        frags_k = rasterize(clip, scene.faces, (h * k, w * k),
+                            cull_backfaces=_cull_mask(plan, scene), face_ranges=face_ranges,
+                            derivatives=plan.derivatives)
+        edge = edge_aa.geometric_edges(frags_k.face_id, scene.faces, k,
+                                       scene.face_material if len(scene.materials) > 1
+                                       else None)
+        if hook is not None:  # shadow edges: the 1x visibility of every shadowed light
+            vis = [v for kind in ("directional", "point", "spot")
+                   if (v := hook(kind, slice(None))) is not None]
+            if vis:
+                edge |= edge_aa.contrast_edges(torch.cat(vis, 1).flatten(1, 2),
+                                               edge_aa.CONTRAST_THRESHOLD)
+        elif edge_aa.CONTRAST_THRESHOLD < 0:
+            edge |= edge_aa.contrast_edges(image, edge_aa.CONTRAST_THRESHOLD)
+        packed = edge_aa.pack_subsamples(frags_k, edge, k)
+        count = packed.count
+        plan = replace(plan, edge_pixels=count)
+        if count == 0:
+            return image, alpha, plan
+        wanted = plan.channels & (_SHADING_NEEDS[plan.shading] | {"alpha"})
+        gb = geometry_pass(packed.frags, wanted, positions=scene.positions, view=view,
+                           normals=normals, uvs=scene.uvs, tangents=scene.tangents,
+                           face_material=scene.face_material, materials=scene.materials,
+                           texture_filter=self.texture_filter, mip_cache=self.mip_cache,
+                           max_anisotropy=self.max_anisotropy)
+        radiance = radiance_of(gb, packed.frags.face_id)
+        if plan.background == "environment":
+            rays = edge_aa.rays_at(view, proj, packed.ndc.to(radiance.dtype))
+            back = environment.background(rays)
+        elif background.shape[-2:] == (h, w):  # an image: the pixel's 1x value
+            back = edge_aa.per_subsample(background.expand(image.shape[0], -1, -1, -1),
+                                         packed)
+        else:
+            back = background
+        sub = radiance + (1 - gb.mask) * back
+        sub_alpha = gb.mask * gb.alpha if gb.alpha is not None else gb.mask
+        return (edge_aa.resolve_edges(image, sub, packed),
+                edge_aa.resolve_edges(alpha, sub_alpha.to(alpha.dtype), packed), plan)
 
 
 @dataclass
@@ -1142,13 +1284,15 @@ def _check_frames(requested: Iterable[str], **frames: OtherFrame | None
 
 
 def _motion_channels(plan: RenderPlan, scene: RenderScene, layers: Sequence, gbs: list[GBuffer],
-                     frames: dict[str, OtherFrame], face_ranges: torch.Tensor | None
-                     ) -> list[GBuffer]:
+                     frames: dict[str, OtherFrame], face_ranges: torch.Tensor | None, b: int,
+                     memo: _RasterMemo) -> list[GBuffer]:
     """Each layer's G-buffer with the requested flow / motion channels of its visible
     surface (:mod:`~torchraster.motion`). Flow is in output pixels (divided by the
     supersampling factor: the label reduction keeps one sub-sample); the other frame is
     rasterized once per frame for validity, with the main pass's culling (unless the frame
-    holds its depth already; the rasterized depth is stored on the frame)."""
+    holds its depth already; the rasterized depth is stored on the frame). That raster is
+    the main pass's own (kept in ``memo``): when the other frame is rendered next, it is
+    not rasterized again."""
     want = plan.requested
     extra: list[dict[str, torch.Tensor]] = [{} for _ in layers]
     dtype = scene.positions.dtype
@@ -1162,11 +1306,12 @@ def _motion_channels(plan: RenderPlan, scene: RenderScene, layers: Sequence, gbs
         if valid_ch in want:
             other = frame.depth
             if other is None:  # stored on the frame: passing it again skips this raster
-                clip = transform_points(frame.positions, frame.proj @ frame.view)
-                other = other_frame_depth(clip if clip.dim() == 3 else clip[None], scene.faces,
-                                          plan.resolution, frame.proj,
-                                          cull_backfaces=_cull_mask(plan, scene),
-                                          face_ranges=face_ranges)
+                with torch.no_grad():
+                    clip = _clip_positions(frame.positions.detach(), frame.view.detach(),
+                                           frame.proj.detach(), b)
+                    seen = memo.rasterize(clip, scene.faces, plan, _cull_mask(plan, scene),
+                                          face_ranges, keep=True)
+                    other = other_depth(seen.depth, frame.proj)
                 frame.depth = other
         for k, f in enumerate(layers):
             rep = reproject(f, scene.faces, frame.positions, frame.view, frame.proj)
@@ -1176,8 +1321,71 @@ def _motion_channels(plan: RenderPlan, scene: RenderScene, layers: Sequence, gbs
             if mv:
                 extra[k]["motion"] = finish_low_precision(motion_from(rep), dtype)
             if other is not None:
-                extra[k][valid_ch] = validity_from(rep, other).to(dtype)
+                extra[k][valid_ch] = validity_from(
+                    rep, other, own_slope=lambda where, f=f, frame=frame: face_depth_slope(
+                        f, scene.faces, frame.positions, frame.view, frame.proj, where)
+                ).to(dtype)
     return [g.replace(**e) for g, e in zip(gbs, extra, strict=True)]
+
+
+def _clip_positions(positions: torch.Tensor, view: torch.Tensor, proj: torch.Tensor, b: int
+                    ) -> torch.Tensor:
+    """``(b, V, 4)`` clip positions of ``positions`` ``(V, 3)`` or ``(1 or b, V, 3)`` by
+    ``view``, ``proj`` ``(4, 4)`` or ``(1 or b, 4, 4)``: the one way every pass computes
+    them (so a frame rasterized as another frame's neighbour is the same raster)."""
+    view, proj = view.expand(b, 4, 4), proj.expand(b, 4, 4)
+    clip = transform_points(positions, (proj @ view).to(positions.dtype))
+    return clip if clip.shape[0] == b else clip.expand(b, -1, -1)
+
+
+class _RasterMemo:
+    """The Fragments of the last two frames rasterized as another frame's neighbour (flow
+    validity), by content: the digest of the clip positions, the faces (by identity and
+    version), the culling, the face ranges, the resolution and the raster options.
+    :meth:`rasterize` returns a kept raster only for inputs without gradients (a kept
+    raster has no graph); the result is what ``rasterize`` gives for those inputs."""
+
+    _KEPT = 2
+
+    def __init__(self) -> None:
+        self._kept: dict[tuple, tuple] = {}
+
+    def rasterize(self, clip: torch.Tensor, faces: torch.Tensor, plan: RenderPlan,
+                  cull: bool | torch.Tensor, face_ranges: torch.Tensor | None, *,
+                  keep: bool = False) -> Fragments:
+        """``rasterize(clip, faces, plan.resolution, ...)`` with the plan's options, a kept
+        raster when the same inputs were kept; ``keep`` keeps this one."""
+        if not (keep or self._kept) or clip.requires_grad:
+            return rasterize(clip, faces, plan.resolution, cull_backfaces=cull,
+                             face_ranges=face_ranges, derivatives=plan.derivatives,
+                             layers=plan.layers)
+        key = (content_key(clip), plan.resolution, plan.derivatives, plan.layers)
+        found = self._kept.get(key)
+        if found is not None:
+            kept_faces, version, kept_cull, kept_ranges, frags = found
+            if (kept_faces is faces and version == faces._version
+                    and _same(kept_cull, cull) and _same(kept_ranges, face_ranges)):
+                return frags
+        frags = rasterize(clip, faces, plan.resolution, cull_backfaces=cull,
+                          face_ranges=face_ranges, derivatives=plan.derivatives,
+                          layers=plan.layers)
+        if keep:
+            self._kept.pop(key, None)
+            while len(self._kept) >= self._KEPT:
+                self._kept.pop(next(iter(self._kept)))  # the oldest
+            self._kept[key] = (faces, faces._version, cull, face_ranges, frags)
+        return frags
+
+    def __deepcopy__(self, memo: dict) -> _RasterMemo:
+        return _RasterMemo()  # a copied renderer starts empty
+
+
+def _same(a: bool | torch.Tensor | None, b: bool | torch.Tensor | None) -> bool:
+    """Whether two culling flags / face-range tensors are the same values."""
+    if isinstance(a, torch.Tensor) or isinstance(b, torch.Tensor):
+        return (isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor)
+                and a.shape == b.shape and bool(torch.equal(a, b)))
+    return a == b
 
 
 def _cull_mask(plan: RenderPlan, scene: RenderScene) -> bool | torch.Tensor:

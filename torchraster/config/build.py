@@ -118,7 +118,8 @@ def build_environment(cfg: RenderFile, device: str | torch.device = "cpu"
         return None
     radiance = read_hdr(Path(e.path)).to(device)
     return Environment(radiance, yaw=math.radians(e.rotation_deg), intensity=e.intensity,
-                       specular=e.specular, importance_samples=e.importance_samples)
+                       specular=e.specular, importance_samples=e.importance_samples,
+                       sun_threshold=e.sun_threshold)
 
 
 def build_fog(cfg: FogConfig) -> Fog | None:
@@ -201,7 +202,7 @@ def build_renderer(cfg: RenderFile, with_environment: bool) -> Renderer:
                     background_image=image,
                     background_fit=r.background_image.fit if image is not None else "cover",
                     dissolve=build_dissolve(r.dissolve) if r.dissolve is not None else None,
-                    supersample=r.supersample,
+                    supersample=r.supersample, edge_supersample=r.edge_supersample,
                     cull_backfaces=r.cull_backfaces, background=r.background,
                     environment_background=bool(with_environment and cfg.environment
                                                 and cfg.environment.background),
@@ -319,13 +320,18 @@ def build_camera(cam: CameraConfig, positions: torch.Tensor, resolution: tuple[i
     lo, hi = positions.amin(0), positions.amax(0)
     center = (lo + hi) / 2
     radius = float((positions - center).norm(dim=-1).max().clamp(min=1e-6))
+    exact = positions.dtype == torch.float64  # a world far from the origin (config/objects)
+
+    def vec(v):  # its camera in float64 too (float32 rounds 1e6 to 1/16; relative.py)
+        return torch.as_tensor(v, dtype=torch.float64) if exact else v
+
     if cam.look_at is not None:
-        view = camera.look_at(cam.look_at.eye, cam.look_at.target, cam.look_at.up)
+        view = camera.look_at(vec(cam.look_at.eye), vec(cam.look_at.target), cam.look_at.up)
         distance = float((torch.tensor(cam.look_at.eye) - torch.tensor(cam.look_at.target)).norm())
     elif cam.trajectory is not None:
         keys = cam.trajectory.keys
-        view = look_at_path([k.time for k in keys], [k.eye for k in keys],
-                            [k.target for k in keys], [k.up for k in keys], t=[time],
+        view = look_at_path([k.time for k in keys], vec([k.eye for k in keys]),
+                            vec([k.target for k in keys]), [k.up for k in keys], t=[time],
                             interpolation=cam.trajectory.interpolation)
         eye = view.inverse()[0, :3, 3]
         distance = float((eye - center).norm().clamp(min=radius * 1e-3))
@@ -334,8 +340,8 @@ def build_camera(cam: CameraConfig, positions: torch.Tensor, resolution: tuple[i
         target = o.target if o.target is not None else center.tolist()
         fov = math.radians(cam.fov_deg)
         distance = o.distance or radius / math.sin(min(fov, fov * w / h) / 2) * 1.05
-        view = camera.orbit(o.azimuth_deg + o.degrees_per_second * time, o.elevation_deg,
-                            distance, target)
+        view = camera.orbit(vec(o.azimuth_deg + o.degrees_per_second * time),
+                            o.elevation_deg, distance, vec(target))
     near = cam.near or max(distance - 2 * radius, distance * 1e-3, 1e-4)
     far = cam.far or math.inf
     if cam.projection == "orthographic":

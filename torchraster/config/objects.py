@@ -17,6 +17,7 @@ for a time, so the renderer sees world positions, and the per-vertex NOCS coordi
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -27,6 +28,7 @@ from ..io import load_scene, load_texture
 from ..material import Material
 from ..mesh import Mesh, transform_normals, transform_points, transform_tangents, vertex_normals
 from ..mesh import flat as flat_mesh
+from ..relative import FAR_COORDINATE
 from ..scene import RenderScene, nocs_coords
 from .schema import (
     MAX_INSTANCES,
@@ -44,8 +46,27 @@ def transform_matrix(t: TransformConfig) -> torch.Tensor:
     """(4, 4) model -> world: scale, then rotations about x, y, z (degrees), then translate."""
     scale = t.scale if isinstance(t.scale, list) else [t.scale] * 3
     rotation = quaternion_from_euler(torch.tensor(t.rotate_deg, dtype=torch.float64), "xyz")
-    return compose_transform(torch.tensor(t.translate, dtype=torch.float64), rotation,
-                             torch.tensor(scale, dtype=torch.float64)).float()
+    m = compose_transform(torch.tensor(t.translate, dtype=torch.float64), rotation,
+                          torch.tensor(scale, dtype=torch.float64))
+    return m if _far(m) else m.float()  # far from the origin: float64 (relative.py)
+
+
+def _far(matrices: torch.Tensor) -> bool:
+    """Whether model -> world matrices ``(..., 4, 4)`` translate beyond
+    :data:`~torchraster.relative.FAR_COORDINATE` (the world is then posed in float64, and
+    the renderer renders it camera-relative)."""
+    return bool((matrices[..., :3, 3].abs() > FAR_COORDINATE).any())
+
+
+def _far_world(objects: SceneObjects) -> bool:
+    """Whether some instance may be posed beyond ``FAR_COORDINATE`` at some time (rest,
+    node and keyframe translations added up: one dtype for every frame of a config)."""
+    def most(ts: list[torch.Tensor]) -> float:
+        return max((float(t.abs().max()) for t in ts if t.numel()), default=0.0)
+
+    keys = [k.translation for k in objects._keys if k is not None and k.translation is not None]
+    return (most([m[..., :3, 3] for m in objects._rest]) + most([objects.nodes[..., :3, 3]])
+            + most(keys)) > FAR_COORDINATE
 
 
 def keyframes(anim: AnimationConfig, rest: TransformConfig) -> Keyframes:
@@ -130,6 +151,9 @@ class SceneObjects:
     #: time -> posed tensors of the last few times (consecutive frames share their
     #: neighbours: frame t's next frame is frame t + 1); not copied by ``replace``.
     _poses: dict[float, dict] = field(repr=False, init=False, default_factory=dict)
+    #: time -> ``(N, 4, 4)`` matrices evaluated ahead by :meth:`prepare`.
+    _prepared: dict[float, torch.Tensor] = field(repr=False, init=False, default_factory=dict)
+    _vertex_of: torch.Tensor | None = field(repr=False, init=False, default=None)
 
     @property
     def num_objects(self) -> int:
@@ -150,15 +174,29 @@ class SceneObjects:
         """``(N, 4, 4)`` float64 model -> world of every instance at time ``t`` seconds."""
         return self._pose(t)["matrices"].clone()
 
+    def prepare(self, times: Sequence[float]) -> None:
+        """Evaluate the keyframes of many times at once (one call per animated entry for all
+        of them, not one per frame): :meth:`at`, :meth:`positions_at` and
+        :meth:`object_to_world` at those times then only look their matrices up. The poses
+        are the same as without it."""
+        ts = [float(t) for t in dict.fromkeys(times)]
+        if not ts or not self.animated:
+            return
+        entries = [rest.double().expand(len(ts), 4, 4) if keys is None else transform_at(keys, ts)
+                   for rest, keys in zip(self._rest, self._keys, strict=True)]
+        mats = torch.stack([entries[e] for e in self.entry_of], 1) @ self.nodes.double()
+        self._prepared = dict(zip(ts, mats.unbind(0), strict=True))
+
     def _pose(self, t: float) -> dict:
         """The cache entry of time ``t`` (its matrices computed), the last few times kept."""
         t = float(t)
         entry = self._poses.pop(t, None)
         if entry is None:
-            entries = []
-            for rest, keys in zip(self._rest, self._keys, strict=True):
-                entries.append(rest.double() if keys is None else transform_at(keys, [t])[0])
-            mats = torch.stack([entries[e] for e in self.entry_of]) @ self.nodes.double()
+            mats = self._prepared.get(t)
+            if mats is None:
+                entries = [rest.double() if keys is None else transform_at(keys, [t])[0]
+                           for rest, keys in zip(self._rest, self._keys, strict=True)]
+                mats = torch.stack([entries[e] for e in self.entry_of]) @ self.nodes.double()
             entry = {"matrices": mats}
             while len(self._poses) >= _POSES_KEPT:
                 self._poses.pop(next(iter(self._poses)))  # the least recently used
@@ -185,22 +223,28 @@ class SceneObjects:
         if "positions" in entry and (positions_only or "normals" in entry):
             return {k: entry[k] for k in (("positions",) if positions_only else
                                           ("positions", "normals", "tangents"))}
-        mats = entry["matrices"].to(self.model_positions)
+        # one batched transform for all instances: every vertex is a batch item of one point
+        # with its instance's matrix
+        mats = entry["matrices"].to(self.model_positions)[self._vertex_instance()]
         device = self.scene.positions.device if self.scene is not None else "cpu"
-        pos, nrm, tan = [], [], []
-        for (s, e), m in zip(self.vertex_ranges.tolist(), mats, strict=True):
-            if "positions" not in entry:
-                pos.append(transform_points(self.model_positions[s:e], m)[:, :3])
-            if not positions_only:
-                nrm.append(transform_normals(self.model_normals[s:e], m))
-                if self.model_tangents is not None:
-                    tan.append(transform_tangents(self.model_tangents[s:e], m))
         if "positions" not in entry:
-            entry["positions"] = torch.cat(pos).to(device)
+            pos = transform_points(self.model_positions[:, None], mats)[:, 0, :3]
+            if _far_world(self):  # far from the origin: float64 world positions
+                pos = transform_points(self.model_positions.double()[:, None], entry[
+                    "matrices"][self._vertex_instance()])[:, 0, :3]
+            entry["positions"] = pos.to(device)
         if not positions_only:
-            entry["normals"] = torch.cat(nrm).to(device)
-            entry["tangents"] = torch.cat(tan).to(device) if tan else None
+            entry["normals"] = transform_normals(self.model_normals[:, None], mats)[:, 0].to(device)
+            entry["tangents"] = None if self.model_tangents is None else transform_tangents(
+                self.model_tangents[:, None], mats)[:, 0].to(device)
         return self._posed(t, positions_only)
+
+    def _vertex_instance(self) -> torch.Tensor:
+        """``(V,)`` int64 the instance of each vertex."""
+        if self._vertex_of is None:
+            counts = self.vertex_ranges[:, 1] - self.vertex_ranges[:, 0]
+            self._vertex_of = torch.repeat_interleave(torch.arange(counts.shape[0]), counts)
+        return self._vertex_of
 
     def to(self, device: torch.device | str) -> SceneObjects:
         """The same objects with the scene on ``device`` (model data stays on the CPU)."""
@@ -215,6 +259,10 @@ def build_objects(cfg: RenderFile) -> SceneObjects:
     """
     sc = cfg.scene
     instances: list[_Instance] = []
+
+    def texture_key(i: int) -> str:
+        return cfg.where("scene", "objects", i, "material", "base_color_texture")
+
     rests: list[torch.Tensor] = []
     keys: list[Keyframes | None] = []
 
@@ -238,11 +286,13 @@ def build_objects(cfg: RenderFile) -> SceneObjects:
                                     obj.receive_shadows, entry, obj.category, kp)
             if obj.material is not None:
                 for inst in found:
-                    inst.materials = [_object_material(m, obj.material, sc.max_texture_size)
+                    inst.materials = [_object_material(m, obj.material, sc.max_texture_size,
+                                                       texture_key(i))
                                       for m in inst.materials]
             instances += found
         else:
-            instances.append(_primitive_instance(obj, name, sc.max_texture_size, entry, kp))
+            instances.append(_primitive_instance(obj, name, sc.max_texture_size, entry, kp,
+                                                 texture_key(i)))
     if len(instances) > MAX_INSTANCES:
         raise ConfigError(f"{cfg.where('scene')}: {len(instances)} instances; instance ids are "
                           f"16-bit (at most {MAX_INSTANCES})")
@@ -284,7 +334,7 @@ def _file_instances(cfg: RenderFile, path: str, name: str, normals_mode: str, ca
 
 
 def _primitive_instance(obj: ObjectConfig, name: str, max_texture: int | None, entry: int,
-                        keypoints: torch.Tensor | None) -> _Instance:
+                        keypoints: torch.Tensor | None, key: str) -> _Instance:
     """A plane, box or sphere of ``obj.size`` with its material, in its model frame."""
     import trimesh
 
@@ -317,7 +367,7 @@ def _primitive_instance(obj: ObjectConfig, name: str, max_texture: int | None, e
     rgba = list(mc.base_color) + ([1.0] if len(mc.base_color) == 3 else [])
     texture = None
     if mc.base_color_texture is not None:
-        texture = load_texture(Path(mc.base_color_texture), max_size=max_texture)
+        texture = _texture(mc.base_color_texture, max_texture, key)
     material = Material(name=mc.name or f"object:{name}", base_color_factor=torch.tensor(rgba),
                         base_color_texture=texture, metallic_factor=mc.metallic,
                         roughness_factor=mc.roughness, emissive_factor=torch.tensor(mc.emissive),
@@ -393,7 +443,7 @@ def _assemble(cfg: RenderFile, instances: list[_Instance], rests: list[torch.Ten
 
 
 def _object_material(mat: Material, mc: ObjectMaterialConfig,
-                     max_texture: int | None) -> Material:
+                     max_texture: int | None, key: str) -> Material:
     """A mesh's material with the fields an object's ``material:`` sets replaced (a new
     Material: other instances of the file keep theirs)."""
     given = mc.model_fields_set
@@ -408,14 +458,22 @@ def _object_material(mat: Material, mc: ObjectMaterialConfig,
     if "emissive" in given:
         changes["emissive_factor"] = torch.tensor(mc.emissive)
     if "base_color_texture" in given and mc.base_color_texture is not None:
-        changes["base_color_texture"] = load_texture(Path(mc.base_color_texture),
-                                                     max_size=max_texture)
+        changes["base_color_texture"] = _texture(mc.base_color_texture, max_texture, key)
     return replace(mat, **changes)
+
+
+def _texture(path: str | Path, max_texture: int | None, key: str) -> torch.Tensor:
+    """``load_texture`` of a config's texture; errors name the config key (``key``:
+    ``file:line: key.path``) and the image file."""
+    try:
+        return load_texture(Path(path), max_size=max_texture)
+    except (OSError, ValueError) as e:
+        raise ConfigError(f"{key}: {e}") from None
 
 
 def _override(mat: Material | None, cfg: RenderFile) -> Material | None:
     """Apply the config's material overrides (in order) to one material."""
-    for o in cfg.materials:
+    for j, o in enumerate(cfg.materials):
         if o.match != "*" and (mat is None or mat.name != o.match):
             continue
         mat = mat if mat is not None else Material()
@@ -430,7 +488,8 @@ def _override(mat: Material | None, cfg: RenderFile) -> Material | None:
         if o.emissive is not None:
             changes["emissive_factor"] = torch.tensor(o.emissive)
         if o.base_color_texture is not None:
-            changes["base_color_texture"] = load_texture(
-                Path(o.base_color_texture), max_size=cfg.scene.max_texture_size)
+            changes["base_color_texture"] = _texture(
+                o.base_color_texture, cfg.scene.max_texture_size,
+                cfg.where("materials", j, "base_color_texture"))
         mat = replace(mat, **changes)
     return mat

@@ -23,21 +23,7 @@ def _type_name(annotation: Any) -> str:
     args = typing.get_args(annotation)
     if origin is Annotated:
         base, *meta = args
-        text = _type_name(base)
-        for m in meta:
-            for attr, sym in (("ge", ">="), ("gt", ">"), ("le", "<="), ("lt", "<")):
-                for c in getattr(m, "metadata", [m]):
-                    if getattr(c, attr, None) is not None:
-                        text += f" {sym} {getattr(c, attr):g}"
-            lo, hi = getattr(m, "min_length", None), getattr(m, "max_length", None)
-            for c in getattr(m, "metadata", []):
-                lo = getattr(c, "min_length", lo)
-                hi = getattr(c, "max_length", hi)
-            if lo is not None and lo == hi:
-                text += f" (exactly {lo})"
-            elif lo:
-                text += f" (at least {lo})"
-        return text
+        return _type_name(base) + _bounds_text(meta)
     if origin is Literal:
         return " \\| ".join(repr(a) for a in args)
     if origin in (list, Sequence):
@@ -50,6 +36,29 @@ def _type_name(annotation: Any) -> str:
             return f"[{annotation.__name__}](#{annotation.__name__.lower()})"
         return annotation.__name__
     return str(annotation).replace("typing.", "")
+
+
+def _bounds_text(meta: Sequence[Any]) -> str:
+    """`` >= 0 <= 1``, `` (exactly 3)``, ... of pydantic constraints (annotated types or
+    ``FieldInfo.metadata``)."""
+    found: dict[str, Any] = {}
+    for m in meta:
+        for c in [m, *getattr(m, "metadata", [])]:
+            for attr in ("ge", "gt", "le", "lt", "min_length", "max_length"):
+                if getattr(c, attr, None) is not None:
+                    found[attr] = getattr(c, attr)
+    text = "".join(f" {sym} {found[attr]:g}" for attr, sym in (
+        ("ge", ">="), ("gt", ">"), ("le", "<="), ("lt", "<")) if attr in found)
+    lo, hi = found.get("min_length"), found.get("max_length")
+    if lo is not None and lo == hi:
+        text += f" (exactly {lo})"
+    elif lo and hi is not None:
+        text += f" ({lo} to {hi} items)"
+    elif lo:
+        text += f" (at least {lo})"
+    elif hi is not None:
+        text += f" (at most {hi})"
+    return text
 
 
 def _default_text(field: Any) -> str:
@@ -93,7 +102,8 @@ def config_reference() -> str:
             if field.exclude:
                 continue
             desc = (field.description or "").replace("|", "\\|").replace("\n", " ")
-            out.append(f"| `{name}` | {_type_name(field.annotation)} | "
+            kind = _type_name(field.annotation) + _bounds_text(field.metadata)
+            out.append(f"| `{name}` | {kind} | "
                        f"{_default_text(field)} | {desc} |")
         out.append("")
     return "\n".join(out)

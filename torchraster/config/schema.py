@@ -546,6 +546,11 @@ class RenderConfig(_Strict):
     supersample: Annotated[int, Field(ge=1, le=8)] = Field(
         default_of(Renderer, "supersample"),
         description="render at s x the resolution and box-filter down")
+    edge_supersample: Annotated[int, Field(ge=1, le=8)] = Field(
+        default_of(Renderer, "edge_supersample"),
+        description="antialias edges only: the pixels on geometric and shadow edges are "
+        "shaded at k x k sub-samples and box-filtered (labels stay exact; 1 = off; not with "
+        "supersample > 1, antialias, ssao, ssr, fog, dissolve or MASK / BLEND materials)")
     cull_backfaces: bool = Field(default_of(Renderer, "cull_backfaces"),
                                  description="drop back faces of every material")
     texture_filter: Literal["trilinear", "anisotropic", "bilinear", "nearest"] = Field(
@@ -586,8 +591,15 @@ class RenderConfig(_Strict):
         return self
 
     @model_validator(mode="after")
+    def _one_supersampling(self) -> RenderConfig:
+        if self.edge_supersample > 1 and self.supersample > 1:
+            raise ValueError(f"edge_supersample: not combined with supersample "
+                             f"{self.supersample} (use one of them)")
+        return self
+
+    @model_validator(mode="after")
     def _bounded(self) -> RenderConfig:
-        side = max(self.size) * self.supersample
+        side = max(self.size) * max(self.supersample, self.edge_supersample)
         if side > MAX_SUPERSAMPLED_SIDE:
             raise ValueError(f"supersample x resolution = {side} pixels a side exceeds "
                              f"{MAX_SUPERSAMPLED_SIDE}; lower supersample or resolution")
@@ -612,6 +624,11 @@ class EnvironmentConfig(_Strict):
     importance_samples: Annotated[int, Field(ge=1, le=1024)] = Field(
         default_of(Environment, "importance_samples"),
         description="samples a pixel for specular: importance")
+    sun_threshold: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = Field(
+        None, description="split the map's sun off as a directional light shaded with the "
+        "exact GGX BRDF: the texels near the brightest one above this many times the mean "
+        "radiance (e.g. 10; none: off). Closer glossy reflections of sunny maps; not with "
+        "render.ssr")
 
 
 def _shadow_default(name: str) -> Any:

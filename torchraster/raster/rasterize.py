@@ -629,10 +629,18 @@ def depth_key(z: torch.Tensor) -> torch.Tensor:
 def key_depth(keys: torch.Tensor) -> torch.Tensor:
     """The float32 depth of int64 keys (any shape): the inverse of :func:`depth_key`; +inf
     for ``EMPTY_KEY``."""
-    bits = (keys >> 32).to(torch.int32)
-    bits = bits ^ ((bits >> 31) & 0x7FFFFFFF)  # inverse of depth_key's flip
-    depth = bits.view(torch.float32)
-    return torch.where(keys == EMPTY_KEY, torch.full_like(depth, float("inf")), depth)
+    # in chunks of 2**20 keys: the only full-size buffer is the result (a 4096² shadow map
+    # view: 64 MB, no int64 / int32 / bool temporaries of its size)
+    flat = keys.reshape(-1)
+    out = torch.empty(flat.shape, dtype=torch.float32, device=keys.device)
+    step = 2**20
+    for k in range(0, flat.numel(), step):
+        part = flat[k:k + step]
+        bits = (part >> 32).to(torch.int32)
+        bits = bits ^ ((bits >> 31) & 0x7FFFFFFF)  # inverse of depth_key's flip
+        out[k:k + step] = bits.view(torch.float32).masked_fill_(part == EMPTY_KEY,
+                                                                float("inf"))
+    return out.view(keys.shape)
 
 
 #: Chunks of at most this many candidates test the three edges in one broadcast

@@ -45,16 +45,29 @@ Filters (``ShadowSettings.filter``):
   the maps are rendered by the differentiable :func:`~torchraster.raster.rasterize`, so
   gradients reach occluder geometry too.
 
-Gradients: the visibility factor multiplies the illuminance, so receivers' shading,
-materials and light intensity get gradients through it always. Through the visibility
-itself: PCF / PCSS are differentiable with respect to everything that moves the receiver's
-position in the map (light position and direction, receiver positions; not occluder depth:
-a depth comparison is a step); VSM also with respect to occluder depth; ``"hard"`` has zero
-gradient.
+Gradients (measured against finite differences of the visibility averaged over sub-texel
+offsets of the map grid, the converged quantity: docs/benchmarks.md "shadow-gradients",
+docs/design.md "Shadows", Gradients): the visibility factor multiplies the illuminance, so
+receivers' shading, materials and light intensity get exact gradients through it always.
+Through the visibility itself, a map rendered without gradients is piecewise constant,
+but the shadow edges it holds move with the light: PCF / PCSS lookups take the map's own
+motion out of each tap (:func:`_blocker_motion`: the tap's blocker reprojected through the
+differentiable view), so they are differentiable with respect to the light position and
+direction and the receiver positions; with autograd on the caster positions the maps also
+record each texel's caster face (one more, non-differentiable, :func:`rasterize` per map)
+and the blocker point follows that face's vertices, so caster vertices get gradients too.
+The PCSS penumbra width carries none (its blocker search is not differentiated). VSM
+maps are rendered with the differentiable :func:`rasterize` when autograd needs them and
+their moments antialiased (silhouettes moving across texels), so VSM also follows caster
+vertices and occluder depth. ``"hard"`` has zero gradient. What a
+tiny finite difference at one map position (``gradcheck``) sees is the derivative of a map
+glued to the light, which is not the image's: measured, it has the wrong sign for a point
+light over a sphere half-way to the floor.
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import math
 from collections.abc import Sequence
@@ -64,7 +77,7 @@ import torch
 
 from torchraster._validate import check_float, check_int, check_tensor
 from torchraster.numerics import compute_dtype, safe_normalize
-from torchraster.raster import rasterize, rasterize_depth
+from torchraster.raster import antialias, rasterize, rasterize_depth
 
 FILTERS = ("hard", "pcf", "pcss", "vsm")
 PATTERNS = ("poisson", "grid")
@@ -199,6 +212,10 @@ class ShadowMaps:
     light_position: torch.Tensor | None = None  # (B, Ls, 3) point / spot
     light_direction: torch.Tensor | None = None  # (B, Ls, 3) unit, travel direction
     steps: list[str] = field(default_factory=list)
+    #: PCF / PCSS with autograd to caster vertices: ``(B, Ls, NV, S, S)`` int32 caster face
+    #: of each texel (-1: none) and the casters (positions ``(B or 1, V, 3)``, faces)
+    face_id: torch.Tensor | None = None
+    casters: tuple[torch.Tensor, torch.Tensor] | None = None
 
     @property
     def perspective(self) -> bool:
@@ -268,6 +285,21 @@ def _linear_depth(ndc: torch.Tensor, near: torch.Tensor, far: torch.Tensor,
     return torch.where(empty, far, d)
 
 
+def _linear_depth_inplace(ndc: torch.Tensor, near: torch.Tensor, far: torch.Tensor,
+                          perspective: bool) -> torch.Tensor:
+    """:func:`_linear_depth` overwriting ``ndc`` (no full-size temporaries: the maps of
+    a 4096² cube are 6 x 64 MB), ``+inf`` where ``ndc`` is not finite; the same operations
+    in the same order, so bit-identical to it where ``ndc`` is finite."""
+    empty = ~torch.isfinite(ndc)
+    ndc.mul_(far - near)
+    if perspective:  # 2 f n / ((f + n) - z (f - n))
+        ndc.neg_().add_(far + near)
+        torch.div(2 * far * near, ndc, out=ndc)
+    else:  # (z (f - n) + f + n) / 2
+        ndc.add_(far).add_(near).div_(2)
+    return ndc.masked_fill_(empty, float("inf"))
+
+
 _CUBE_FORWARD = ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1))
 
 
@@ -316,6 +348,12 @@ def _grid(n: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
                                                                                dtype=torch.float64)
     gy, gx = torch.meshgrid(t, t, indexing="ij")
     return torch.stack([gx.flatten(), gy.flatten()], -1).to(dtype=dtype, device=device)
+
+
+@functools.lru_cache(maxsize=32)
+def _taps(count: int, pattern: str, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """:func:`tap_pattern`, kept (read-only) per settings, dtype and device."""
+    return tap_pattern(ShadowSettings(pcf_taps=count, pcf_pattern=pattern), dtype, device)
 
 
 def tap_pattern(settings: ShadowSettings, dtype: torch.dtype = torch.float32,
@@ -627,9 +665,11 @@ def render_shadow_maps(groups: Sequence[ShadowMaps], positions: torch.Tensor,
                        cache: ShadowMapCache | None = None) -> None:
     """Render the depth of every view of ``groups`` (in place: sets ``group.depth``).
 
-    All views of one map size go through one :func:`rasterize_depth` call (chunked to
-    ``memory_budget`` bytes of maps); VSM groups with autograd on use the differentiable
-    :func:`rasterize`.
+    All views of one map size go through :func:`rasterize_depth` in chunks of
+    ``memory_budget`` bytes of maps; each chunk is converted to linear depth (or VSM
+    moments) and written into the group's map before the next is rendered, so the peak is
+    the maps plus one chunk's temporaries. VSM groups with autograd on use the
+    differentiable :func:`rasterize`.
 
     Args:
         groups: from :func:`directional_views` / :func:`local_views`.
@@ -637,7 +677,8 @@ def render_shadow_maps(groups: Sequence[ShadowMaps], positions: torch.Tensor,
             shadow casters; face_ranges: ``(B, 2)`` as in ``rasterize`` or None.
         memory_budget: bytes of shadow maps (and per-pixel buffers) rendered per call.
         cache: a :class:`ShadowMapCache`: maps of views seen before (same casters, same
-            matrix) are reused, and equal views of this call rendered once.
+            matrix) are reused, and equal views of this call rendered once. Maps larger
+            than its ``max_bytes`` bypass it (it could not keep them).
     """
     positions = positions.to(compute_dtype(positions))  # half precision: maps in float32
     by_size: dict[tuple[int, bool], list[ShadowMaps]] = {}
@@ -647,7 +688,7 @@ def render_shadow_maps(groups: Sequence[ShadowMaps], positions: torch.Tensor,
         by_size.setdefault((g.settings.map_size, grad), []).append(g)
     pos = positions if positions.dim() == 3 else positions[None]
     for (size, grad), members in by_size.items():
-        mats, owners = [], []
+        mats, owners, slots, spans = [], [], [], []
         for g in members:
             b, n_lights, nv = g.view.shape[:3]
             keep = g.rendered.nonzero().flatten()
@@ -656,56 +697,159 @@ def render_shadow_maps(groups: Sequence[ShadowMaps], positions: torch.Tensor,
             items = torch.arange(b, device=pos.device)[:, None, None].expand(
                 b, n_lights, keep.numel()).reshape(-1)
             owners.append(items)
+            # flat (B * Ls * NV) index of each rendered view in the group's maps
+            flat = torch.arange(b * n_lights, device=pos.device)[:, None] * nv + keep
+            slots.append(flat.reshape(-1))
+            start = spans[-1][1] if spans else 0
+            spans.append((start, start + slots[-1].numel()))
+            g.depth = _empty_maps(g, size, positions.dtype)
+            g.face_id, g.casters = None, None
+            if (g.settings.filter in ("pcf", "pcss") and torch.is_grad_enabled()
+                    and positions.requires_grad):  # for the casters' gradient
+                g.face_id = torch.full(g.depth.shape, -1, dtype=torch.int32,
+                                       device=g.depth.device)
+                g.casters = (pos, faces)
         all_m = torch.cat(mats) if grad else torch.cat(mats).detach()
+        if grad:  # near / far / projection of every view, for _vsm_render
+            near_rows = torch.cat([g.near.reshape(-1).index_select(0, sl)
+                                   for g, sl in zip(members, slots, strict=True)])
+            far_rows = torch.cat([g.far.reshape(-1).index_select(0, sl)
+                                  for g, sl in zip(members, slots, strict=True)])
+            persp_rows = torch.cat([torch.full((sl.numel(),), g.perspective,
+                                               device=sl.device)
+                                    for g, sl in zip(members, slots, strict=True)])
         items = torch.cat(owners)
         per_view = size * size * (16 if not grad else 400)
         per_call = max(1, memory_budget // per_view)
-        ndc = []
-        if cache is not None and not grad and all_m.shape[0]:
-            ndc.append(cache.render(pos, faces, face_ranges, items, all_m, size,
-                                    per_call).to(positions.dtype))
-        for k in range(0, all_m.shape[0] if not ndc else 0, per_call):
+        cached = (cache is not None and not grad and size * size * 4 <= cache.max_bytes
+                  and all(g.face_id is None for g in members))  # the cache keeps no face ids
+        for k in range(0, all_m.shape[0], per_call):
             sl = slice(k, k + per_call)
-            src = pos.index_select(0, items[sl]) if pos.shape[0] > 1 else pos.expand(
-                all_m[sl].shape[0], -1, -1)
-            homo = torch.cat([src, torch.ones_like(src[..., :1])], -1)
-            clip = homo @ all_m[sl].to(homo.dtype).transpose(1, 2)
-            ranges = None if face_ranges is None else face_ranges.index_select(0, items[sl])
-            if grad:
-                d = rasterize(clip, faces, (size, size), face_ranges=ranges).depth
+            if cached:
+                ndc = cache.render(pos, faces, face_ranges, items[sl], all_m[sl], size,
+                                   per_call)
             else:
-                d = rasterize_depth(clip, faces, (size, size), face_ranges=ranges)
-            ndc.append(d.to(positions.dtype))
-        # every view of the size may be skipped (e.g. no cascade covers a caster)
-        ndc_all = torch.cat(ndc) if ndc else pos.new_empty(0, size, size).to(positions.dtype)
-        start = 0
+                src = pos.index_select(0, items[sl]) if pos.shape[0] > 1 else pos.expand(
+                    all_m[sl].shape[0], -1, -1)
+                homo = torch.cat([src, torch.ones_like(src[..., :1])], -1)
+                clip = homo @ all_m[sl].to(homo.dtype).transpose(1, 2)
+                del src, homo
+                ranges = None if face_ranges is None else face_ranges.index_select(0, items[sl])
+                if grad:
+                    ndc = _vsm_render(clip, faces, size, ranges, near_rows[sl], far_rows[sl],
+                                      persp_rows[sl])
+                else:
+                    ndc = rasterize_depth(clip, faces, (size, size), face_ranges=ranges)
+                    if any(g.face_id is not None for g in members):
+                        with torch.no_grad():  # the same winners as rasterize_depth
+                            fid = rasterize(clip.detach(), faces, (size, size),
+                                            face_ranges=ranges).face_id.to(torch.int32)
+                        for g, (lo, hi), slot in zip(members, spans, slots, strict=True):
+                            a, z = max(lo, k), min(hi, k + fid.shape[0])
+                            if a < z and g.face_id is not None:
+                                g.face_id.view(-1, size, size).index_copy_(
+                                    0, slot[a - lo:z - lo], fid[a - k:z - k])
+                del clip
+            for g, (lo, hi), slot in zip(members, spans, slots, strict=True):
+                a, z = max(lo, k), min(hi, k + ndc.shape[0])
+                if a < z:
+                    _store_maps(g, ndc[a - k:z - k].to(positions.dtype),
+                                slot[a - lo:z - lo])
+            del ndc
         for g in members:
-            b, n_lights, nv = g.view.shape[:3]
-            keep = g.rendered.nonzero().flatten()
-            count = b * n_lights * keep.numel()
-            part = ndc_all[start:start + count].view(b, n_lights, keep.numel(), size, size)
-            start += count
-            full = part.new_full((b, n_lights, nv, size, size), float("inf"))
-            full = full.index_copy(2, keep, part)
-            near, far = g.near[..., None, None], g.far[..., None, None]
-            lin = _linear_depth(full, near, far, g.perspective)
-            if g.settings.filter == "vsm":
-                lin = _vsm_moments(lin, near, far, g.settings)
-            else:  # receivers beyond the casters' far plane are lit where nothing was drawn
-                lin = torch.where(torch.isfinite(full), lin, torch.full_like(lin, float("inf")))
-            g.depth = lin
+            nv = g.view.shape[2]
+            keep = int(g.rendered.sum())
             what = {"cascades": f"{nv} cascades", "cube": "cube 6 faces",
                     "single": "1 map"}[g.layout]
-            if keep.numel() < nv:
-                what = f"{keep.numel()} of {nv} " + ("cascades" if nv > 1 else "maps")
+            if keep < nv:
+                what = f"{keep} of {nv} " + ("cascades" if nv > 1 else "maps")
             g.steps.append(f"shadow {g.kind}{g.lights} {what} {size}x{size} {g.settings.filter}")
+
+
+def _empty_maps(g: ShadowMaps, size: int, dtype: torch.dtype) -> torch.Tensor:
+    """The maps of group ``g`` before any view is rendered: ``+inf`` (no caster), or for
+    VSM the moments of depth at the far plane."""
+    b, n_lights, nv = g.view.shape[:3]
+    if g.settings.filter != "vsm":
+        return torch.full((b, n_lights, nv, size, size), float("inf"), dtype=dtype,
+                          device=g.view.device)
+    one = torch.ones(1, size, size, dtype=dtype, device=g.view.device)
+    far = _vsm_moments(one, one[:, :1, :1] * 0, one[:, :1, :1], g.settings)  # z = 1
+    return far.expand(b * n_lights * nv, 2, size, size).reshape(
+        b, n_lights, nv, 2, size, size).contiguous()
+
+
+def _store_maps(g: ShadowMaps, ndc: torch.Tensor, slot: torch.Tensor) -> None:
+    """Write rendered NDC depth ``(N, S, S)`` of views ``slot`` ``(N,)`` (flat indices
+    into ``(B * Ls * NV)``) into ``g.depth`` as linear depth, or VSM moments; ``ndc`` may
+    also be the unblurred moments ``(N, 2, S, S)`` of :func:`_vsm_render`."""
+    if ndc.dim() == 4:  # VSM moments with autograd: blurred, out of place
+        val = _vsm_blur(ndc, g.settings)
+        shape = g.depth.shape
+        g.depth = g.depth.reshape(-1, *val.shape[1:]).index_copy(0, slot, val).view(shape)
+        return
+    near = g.near.reshape(-1).index_select(0, slot)[:, None, None]
+    far = g.far.reshape(-1).index_select(0, slot)[:, None, None]
+    if g.settings.filter != "vsm" and not (ndc.requires_grad or near.requires_grad
+                                           or far.requires_grad):
+        g.depth.view(-1, *ndc.shape[1:]).index_copy_(
+            0, slot, _linear_depth_inplace(ndc, near, far, g.perspective))
+        return
+    lin = _linear_depth(ndc, near, far, g.perspective)
+    if g.settings.filter == "vsm":
+        val = _vsm_moments(lin, near, far, g.settings)
+        size = ndc.shape[-1]
+        flat = g.depth.view(-1, 2, size, size) if not val.requires_grad else None
+    else:  # receivers beyond the casters' far plane are lit where nothing was drawn
+        val = torch.where(torch.isfinite(ndc), lin, torch.full_like(lin, float("inf")))
+        flat = g.depth.view(-1, *ndc.shape[1:])
+    del lin
+    if flat is not None:
+        flat.index_copy_(0, slot, val)
+        return
+    # with autograd: out of place (the maps are small; the graph keeps every chunk anyway)
+    shape = g.depth.shape
+    g.depth = g.depth.reshape(-1, *val.shape[1:]).index_copy(0, slot, val).view(shape)
+
+
+def _vsm_render(clip: torch.Tensor, faces: torch.Tensor, size: int,
+                face_ranges: torch.Tensor | None, near: torch.Tensor, far: torch.Tensor,
+                perspective: torch.Tensor) -> torch.Tensor:
+    """Differentiable VSM moments ``(N, 2, S, S)`` (not blurred) of N views (``near``,
+    ``far`` ``(N,)``, ``perspective`` ``(N,)`` bool) whose gradient includes the casters'
+    silhouettes moving across texels: the moments are antialiased
+    (:func:`~torchraster.raster.antialias`) straight through, so the values are those of
+    :func:`rasterize`'s depth and the gradient with respect to ``clip`` (light pose, caster
+    vertices) is that of the edges' motion as well as of the covered depths. (Antialiasing
+    the moments, not the depth: a texel an edge half covers has the variance of a mix.)"""
+    frags = rasterize(clip, faces, (size, size), face_ranges=face_ranges)
+    d = frags.depth
+    near, far = near[:, None, None], far[:, None, None]
+    persp = perspective[:, None, None]
+    lin = torch.where(persp, _linear_depth(d, near, far, True),
+                      _linear_depth(d, near, far, False))
+    moments = _raw_moments(lin, near, far)
+    if face_ranges is not None:  # antialias takes one face list shared by the batch
+        return moments
+    aa = antialias(moments, frags, clip, faces)
+    return aa + (moments - aa).detach()  # values of moments, gradients of aa
 
 
 def _vsm_moments(lin: torch.Tensor, near: torch.Tensor, far: torch.Tensor,
                  settings: ShadowSettings) -> torch.Tensor:
-    """``(B, Ls, NV, 2, S, S)`` blurred moments (z, z^2) of depth normalised to [0, 1]."""
+    """``(..., 2, S, S)`` blurred moments (z, z^2) of depth ``(..., S, S)`` normalised to
+    [0, 1] over ``near``..``far`` (broadcast)."""
+    return _vsm_blur(_raw_moments(lin, near, far), settings)
+
+
+def _raw_moments(lin: torch.Tensor, near: torch.Tensor, far: torch.Tensor) -> torch.Tensor:
+    """``(..., 2, S, S)`` moments (z, z^2) of depth normalised to [0, 1], not blurred."""
     z = ((lin - near) / (far - near)).clamp(0, 1)
-    moments = torch.stack([z, z * z], dim=3)
+    return torch.stack([z, z * z], dim=-3)
+
+
+def _vsm_blur(moments: torch.Tensor, settings: ShadowSettings) -> torch.Tensor:
+    """Gaussian blur (``settings.vsm_blur`` texels) of moments ``(..., 2, S, S)``."""
     if settings.vsm_blur > 0:
         import kornia  # noqa: PLC0415 (lazy: kornia is slow to import)
 
@@ -761,6 +905,33 @@ def _select_view(g: ShadowMaps, p: torch.Tensor, item: torch.Tensor,
     return idx, t
 
 
+#: Views (B * Ls * NV) up to which :func:`_project` transforms every receiver by every
+#: view's matrix (one matrix product, a (P, 4 * views) temporary) and picks its own; above,
+#: per-receiver matrices are gathered (a (P, Ls, 4, 4) temporary; slower: a 256² frame's
+#: lookup spent most of its time in those gathers).
+DENSE_VIEWS: int = 8
+
+
+def _affine(mats: torch.Tensor, x: torch.Tensor, sel: torch.Tensor, translate: bool
+            ) -> torch.Tensor:
+    """``mats[sel] @ (x, 1)`` (or ``@ (x, 0)`` without ``translate``): ``(P, Ls, R)`` rows
+    of the ``(M, R, 4)`` matrices ``sel`` ``(P, Ls)`` applied to points ``x`` ``(P, 3)``."""
+    # elementwise products in a fixed order (not a BLAS product, whose rounding depends on
+    # the matrix shapes): both paths, and any batch size, give the same bits per receiver
+    m, r = mats.shape[0], mats.shape[1]
+    if m <= DENSE_VIEWS:  # every view at once, then each receiver's own
+        rows = mats.reshape(m * r, 4)
+        out = x[:, 0:1] * rows[:, 0] + x[:, 1:2] * rows[:, 1] + x[:, 2:3] * rows[:, 2]
+        if translate:
+            out = out + rows[:, 3]
+        idx = (sel[..., None] * r + torch.arange(r, device=sel.device)).flatten(1)
+        return out.gather(1, idx).view(*sel.shape, r)
+    sub = mats.index_select(0, sel.flatten()).view(*sel.shape, r, 4)
+    xs = x[:, None, None, :]
+    out = xs[..., 0] * sub[..., 0] + xs[..., 1] * sub[..., 1] + xs[..., 2] * sub[..., 2]
+    return out + sub[..., 3] if translate else out
+
+
 def _project(g: ShadowMaps, p: torch.Tensor, n: torch.Tensor, item: torch.Tensor,
              view_idx: torch.Tensor):
     """Map coordinates of receivers: texel x, y ``(P, Ls)`` (continuous, texel centres at
@@ -772,14 +943,12 @@ def _project(g: ShadowMaps, p: torch.Tensor, n: torch.Tensor, item: torch.Tensor
     size = g.settings.map_size
     v_safe = view_idx.clamp_min(0)
     sel = (item[:, None] * n_l + torch.arange(n_l, device=p.device)) * nv + v_safe  # (P, Ls)
-    view = g.view.reshape(-1, 4, 4).index_select(0, sel.flatten()).view(*sel.shape, 4, 4)
-    proj = g.proj.reshape(-1, 4, 4).index_select(0, sel.flatten()).view(*sel.shape, 4, 4)
     texel = g.texel.reshape(-1).index_select(0, sel.flatten()).view(sel.shape)
     # direction to the light and its slope on the receiver
-    if g.kind == "directional":
-        to_light = -g.light_direction.index_select(0, item)  # (P, Ls, 3)
-    else:
-        to_light = safe_normalize(g.light_position.index_select(0, item) - p[:, None], dim=-1)
+    light = g.light_direction if g.kind == "directional" else g.light_position  # (B, Ls, 3)
+    light = light.expand(p.shape[0], -1, -1) if light.shape[0] == 1 else light.index_select(
+        0, item)
+    to_light = -light if g.kind == "directional" else safe_normalize(light - p[:, None], -1)
     cos = (n[:, None] * to_light).sum(-1).clamp(1e-3, 1.0)
     # tan = sin / cos; "double where" on sin^2: sqrt's derivative is infinite at 0 (a light
     # straight along the normal), which gave NaN gradients w.r.t. the light direction
@@ -788,21 +957,114 @@ def _project(g: ShadowMaps, p: torch.Tensor, n: torch.Tensor, item: torch.Tensor
     sin = torch.where(flat, torch.sqrt(torch.where(flat, sin2, torch.ones_like(sin2))),
                       torch.zeros_like(sin2))
     tan = (sin / cos).clamp_max(MAX_SLOPE)
-    q = (view[..., :3, :3] @ p[:, None, :, None])[..., 0] + view[..., :3, 3]
-    depth = -q[..., 2]
+    # view-space z and clip x, y, w of every receiver: rows of view and proj @ view
+    view = g.view.reshape(-1, 4, 4)
+    mats = torch.cat([view[:, 2:3], (g.proj.reshape(-1, 4, 4) @ view)[:, (0, 1, 3)]], 1)
+    zc = _affine(mats, p, sel, True)  # (P, Ls, 4): z, clip x, y, w
+    depth = -zc[..., 0]
     world_texel = texel * depth.abs() if g.perspective else texel
     s = g.settings
-    p_off = p[:, None] + n[:, None] * (s.normal_bias * world_texel)[..., None]
-    q = (view[..., :3, :3] @ p_off[..., None])[..., 0] + view[..., :3, 3]
-    clip = (proj[..., :, :3] @ q[..., None])[..., 0] + proj[..., :, 3]
-    w = clip[..., 3]
+    if s.normal_bias:  # receiver moved along its normal (the transforms are affine)
+        zc = zc + _affine(mats, n, sel, False) * (s.normal_bias * world_texel)[..., None]
+    w = zc[..., 3]
     w_safe = torch.where(w.abs() > 1e-12, w, torch.ones_like(w))
-    x_ndc, y_ndc = clip[..., 0] / w_safe, clip[..., 1] / w_safe
+    x_ndc, y_ndc = zc[..., 1] / w_safe, zc[..., 2] / w_safe
     tx = (x_ndc + 1) * (size / 2) - 0.5
     ty = (1 - y_ndc) * (size / 2) - 0.5
-    z_ref = -q[..., 2] - world_texel * (s.bias + s.slope_bias * tan)
+    z_ref = -zc[..., 0] - world_texel * (s.bias + s.slope_bias * tan)
     valid = (view_idx >= 0) & (w > 1e-12)
     return tx, ty, z_ref, world_texel, sel, valid, world_texel * s.slope_bias * tan
+
+
+def _map_xy(view: torch.Tensor, proj: torch.Tensor, x: torch.Tensor, size: int
+            ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Continuous texel coordinates ``(P, Ls, T)`` of world points ``x`` ``(P, Ls, T, 3)``
+    in the views ``view`` / ``proj`` ``(P, Ls, 4, 4)``."""
+    q = torch.einsum("plij,pltj->plti", view[..., :3, :3], x) + view[..., None, :3, 3]
+    clip = torch.einsum("plij,pltj->plti", proj[..., :, :3], q) + proj[..., None, :, 3]
+    w = clip[..., 3]
+    w = torch.where(w.abs() > 1e-12, w, torch.ones_like(w))
+    return (clip[..., 0] / w + 1) * (size / 2) - 0.5, (1 - clip[..., 1] / w) * (size / 2) - 0.5
+
+
+def _blocker_motion(maps: torch.Tensor, sel: torch.Tensor, view: torch.Tensor,
+                    proj: torch.Tensor, tx: torch.Tensor, ty: torch.Tensor,
+                    z_ref: torch.Tensor, size: int, perspective: bool,
+                    casters: tuple | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Filter tap positions ``tx``, ``ty`` ``(P, Ls, T)`` with the map's own motion taken
+    out of their gradient (same values).
+
+    A map rendered under ``torch.no_grad`` is piecewise constant in the light's pose, but
+    the shadow edges it holds move with the light as much as the receiver does: a tap's
+    comparison depends on the receiver's position *relative to the occluder's edge*. Each
+    tap's blocker (the farthest blocking one of its 4 bilinear texels, at depth ``d``: the
+    one at the occluder's silhouette, for a convex occluder) is put back into
+    the world at the tap's texel position and depth ``d`` and projected again through the
+    (differentiable) view; its map motion is subtracted from the tap's (straight through:
+    the values do not change). Without it the gradient w.r.t. the light position or
+    direction is that of a map glued to the light (measured: wrong sign for a point light
+    over a caster half-way to the floor; docs/benchmarks.md, "shadow-gradients").
+
+    ``casters``: ``(face ids (M, S*S), positions (B or 1, V, 3), faces (F, 3), item (P,))``
+    when the casters' vertices need gradients: the blocker point is then the barycentric
+    combination (fixed weights) of its face's vertices, so it also follows them.
+    """
+    with torch.no_grad():
+        x0, y0 = torch.floor(tx).long(), torch.floor(ty).long()
+        d = torch.full_like(tx, -float("inf"))
+        fid = torch.full(tx.shape, -1, dtype=torch.int32, device=tx.device)
+        z_ref = z_ref.expand_as(tx)
+        for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
+            v, inside = _fetch(maps, sel, x0 + dx, y0 + dy, size)
+            v = torch.where(inside & (v < z_ref), v, -float("inf"))
+            if casters is not None:
+                f, _ = _fetch(casters[0], sel, x0 + dx, y0 + dy, size)
+                fid = torch.where(v > d, f, fid)
+            d = torch.maximum(d, v)
+        d = torch.where(torch.isfinite(d), d, z_ref)
+        vd, pd = view.detach(), proj.detach()
+        # view-space point at the tap, depth d: x_ndc = (P00 x + P02 z + P03) / w with
+        # z = -d and w = d (perspective) or 1 (orthographic)
+        w = d if perspective else torch.ones_like(d)
+        x_ndc = (tx + 0.5) * (2 / size) - 1
+        y_ndc = 1 - (ty + 0.5) * (2 / size)
+        qx = (x_ndc * w + pd[..., None, 0, 2] * d - pd[..., None, 0, 3]) / pd[..., None, 0, 0]
+        qy = (y_ndc * w + pd[..., None, 1, 2] * d - pd[..., None, 1, 3]) / pd[..., None, 1, 1]
+        q = torch.stack([qx, qy, -d], -1) - vd[..., None, :3, 3]
+        x = torch.einsum("plji,pltj->plti", vd[..., :3, :3], q)  # R^T (q - t)
+    if casters is not None:
+        x = _on_caster(x, fid, *casters[1:])
+    bx, by = _map_xy(view, proj, x, size)
+    return tx - (bx - bx.detach()), ty - (by - by.detach())
+
+
+def _on_caster(x: torch.Tensor, fid: torch.Tensor, positions: torch.Tensor,
+               faces: torch.Tensor, item: torch.Tensor) -> torch.Tensor:
+    """World points ``x`` ``(P, Ls, T, 3)`` on caster faces ``fid`` ``(P, Ls, T)`` (-1:
+    none, kept) as barycentric combinations of the faces' vertices (weights fixed, from
+    the detached geometry), differentiable in ``positions`` ``(B or 1, V, 3)``."""
+    has = fid >= 0
+    tri = faces.index_select(0, fid.clamp_min(0).flatten()).view(*fid.shape, 3)
+    if positions.shape[0] == 1:
+        vert = positions[0].index_select(0, tri.flatten())
+    else:  # the receiver's batch item
+        items = item.view(-1, *([1] * (tri.dim() - 1))).expand_as(tri)
+        vert = positions.reshape(-1, 3).index_select(
+            0, (items * positions.shape[1] + tri).flatten())
+    vert = vert.view(*tri.shape, 3)  # (P, Ls, T, 3, 3)
+    with torch.no_grad():  # barycentrics of x in its triangle (Ericson, RTCD 3.4)
+        a, b, c = vert.detach().to(x.dtype).unbind(-2)
+        v0, v1, v2 = b - a, c - a, x - a
+        d00, d01, d11 = (v0 * v0).sum(-1), (v0 * v1).sum(-1), (v1 * v1).sum(-1)
+        d20, d21 = (v2 * v0).sum(-1), (v2 * v1).sum(-1)
+        den = d00 * d11 - d01 * d01
+        den = torch.where(den.abs() > 0, den, torch.ones_like(den))
+        wb = (d11 * d20 - d01 * d21) / den
+        wc = (d00 * d21 - d01 * d20) / den
+        wts = torch.stack([1 - wb - wc, wb, wc], -1)
+    on = (wts[..., None] * vert.to(x.dtype)).sum(-2)
+    # same value as x (to rounding), the vertices' gradient
+    return torch.where(has[..., None], x + (on - on.detach()), x)
 
 
 def _fetch(maps: torch.Tensor, sel: torch.Tensor, x: torch.Tensor, y: torch.Tensor,
@@ -842,25 +1104,37 @@ def _pcf(maps: torch.Tensor, sel: torch.Tensor, tx: torch.Tensor, ty: torch.Tens
 PAD_MAP_ELEMENTS: int = 2**24
 
 
-def _pcf_padded(maps: torch.Tensor, sel: torch.Tensor, tx: torch.Tensor, ty: torch.Tensor,
+def _pad_maps(maps: torch.Tensor, size: int) -> torch.Tensor:
+    """Maps ``(M, S*S)`` padded by 2 texels of ``+inf`` on every side, flat ``(M*(S+4)^2,)``
+    (for :func:`_pcf_padded`)."""
+    return torch.nn.functional.pad(maps.view(-1, size, size), (2, 2, 2, 2),
+                                   value=float("inf")).reshape(-1)
+
+
+def _pcf_padded(padded: torch.Tensor, sel: torch.Tensor, tx: torch.Tensor, ty: torch.Tensor,
                 z_ref: torch.Tensor, size: int) -> torch.Tensor:
-    """:func:`_pcf` (bilinear) with one index computation per tap instead of four: the
-    maps are padded by 2 texels of ``+inf`` (no caster: lit, like the outside of a map),
-    and the clamped top-left corner (in [-2, S]) reaches the other three at +1, +row."""
+    """:func:`_pcf` (bilinear) with one index computation and one gather per tap instead
+    of four: the maps are padded by 2 texels of ``+inf`` (:func:`_pad_maps`, or here when
+    given ``(M, S*S)`` maps; no caster: lit, like the outside of a map), and the clamped
+    top-left corner (in [-2, S]) reaches the other three at +1, +row."""
     sp = size + 4
-    padded = torch.nn.functional.pad(maps.view(-1, size, size), (2, 2, 2, 2),
-                                     value=float("inf")).reshape(-1)
+    if padded.dim() == 2:  # (M, S*S) maps, not yet padded
+        padded = _pad_maps(padded, size)
     x0f, y0f = torch.floor(tx.detach()), torch.floor(ty.detach())
     fx, fy = tx - x0f, ty - y0f
-    x0 = x0f.long().clamp(-2, size) + 2
-    y0 = y0f.long().clamp(-2, size) + 2
-    s = sel.view(*sel.shape, *([1] * (tx.dim() - sel.dim())))
-    base = ((s * sp + y0) * sp + x0).flatten()
+    # int32 indices (the padded maps hold < 2**31 texels): half the index traffic, and
+    # index_select is ~2x faster with them on CPU
+    x0 = x0f.clamp(-2, size).to(torch.int32) + 2
+    y0 = y0f.clamp(-2, size).to(torch.int32) + 2
+    s = sel.to(torch.int32).view(*sel.shape, *([1] * (tx.dim() - sel.dim())))
+    base = (s * sp + y0) * sp + x0
+    corners = torch.tensor([0, 1, sp, sp + 1], dtype=torch.int32, device=base.device)
+    d = padded.index_select(0, (base[..., None] + corners).flatten()).view(*tx.shape, 4)
+    lit = z_ref[..., None] <= d
+    zero = tx.new_zeros(())
     out = 0
-    for off, wgt in ((0, (1 - fx) * (1 - fy)), (1, fx * (1 - fy)), (sp, (1 - fx) * fy),
-                     (sp + 1, fx * fy)):
-        d = padded.index_select(0, base + off).view(tx.shape)
-        out = out + wgt * (z_ref <= d).to(tx.dtype)
+    for k, wgt in enumerate(((1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy)):
+        out = out + torch.where(lit[..., k], wgt, zero)  # = wgt * lit (wgt >= 0)
     return out.mean(-1)
 
 
@@ -883,8 +1157,9 @@ def _bilinear(maps: torch.Tensor, sel: torch.Tensor, tx: torch.Tensor, ty: torch
     return out
 
 
-def _visibility_of_view(g: ShadowMaps, p, n, item, view_idx) -> torch.Tensor:
-    """``(P, Ls)`` visibility of receivers in the views ``view_idx`` ``(P, Ls)``."""
+def _visibility_of_view(g: ShadowMaps, p, n, item, view_idx, padded=None) -> torch.Tensor:
+    """``(P, Ls)`` visibility of receivers in the views ``view_idx`` ``(P, Ls)``;
+    ``padded``: :func:`_pad_maps` of ``g.depth`` (PCF / PCSS, small maps) or None."""
     s = g.settings
     size = s.map_size
     tx, ty, z_ref, world_texel, sel, valid, ramp = _project(g, p, n, item, view_idx)
@@ -908,15 +1183,27 @@ def _visibility_of_view(g: ShadowMaps, p, n, item, view_idx) -> torch.Tensor:
         vis = _pcf(maps, sel, tx[..., None], ty[..., None], z_ref[..., None], size,
                    bilinear=False)
         return torch.where(valid, vis, torch.ones_like(vis))
-    taps = tap_pattern(s, p.dtype, p.device)  # (T, 2)
+    taps = _taps(s.pcf_taps, s.pcf_pattern, p.dtype, p.device)  # (T, 2)
     radius = torch.full_like(tx, float(s.pcf_radius))
     if s.filter == "pcss":
         radius = _pcss_radius(g, maps, sel, tx, ty, z_ref, world_texel, taps, ramp)
     # each tap against the receiver plane's depth there (+1 texel: the bilinear footprint)
     z_taps = z_ref[..., None] - ramp[..., None] * (taps.norm(dim=-1) * radius[..., None] + 1)
-    pcf = _pcf_padded if maps.numel() <= PAD_MAP_ELEMENTS else _pcf
-    vis = pcf(maps, sel, tx[..., None] + taps[:, 0] * radius[..., None],
-              ty[..., None] + taps[:, 1] * radius[..., None], z_taps, size)
+    tap_x = tx[..., None] + taps[:, 0] * radius[..., None]
+    tap_y = ty[..., None] + taps[:, 1] * radius[..., None]
+    casters = None
+    if torch.is_grad_enabled() and g.face_id is not None:
+        casters = (g.face_id.reshape(-1, size * size), *g.casters, item)
+    if torch.is_grad_enabled() and (g.view.requires_grad or g.proj.requires_grad
+                                    or casters is not None):
+        view = g.view.reshape(-1, 4, 4).index_select(0, sel.flatten()).view(*sel.shape, 4, 4)
+        proj = g.proj.reshape(-1, 4, 4).index_select(0, sel.flatten()).view(*sel.shape, 4, 4)
+        tap_x, tap_y = _blocker_motion(maps, sel, view, proj, tap_x, tap_y, z_taps, size,
+                                       g.perspective, casters)
+    if padded is not None:
+        vis = _pcf_padded(padded, sel, tap_x, tap_y, z_taps, size)
+    else:
+        vis = _pcf(maps, sel, tap_x, tap_y, z_taps, size)
     return torch.where(valid, vis, torch.ones_like(vis))
 
 
@@ -978,28 +1265,34 @@ def shadow_visibility(g: ShadowMaps, position: torch.Tensor, normal: torch.Tenso
     pix = receive.reshape(-1).nonzero().flatten()
     if pix.numel() == 0:
         return out.T.reshape(n_l, b, 1, h, w).permute(1, 0, 2, 3, 4)
-    p_all = position.permute(0, 2, 3, 1).reshape(-1, 3)
-    n_all = normal.permute(0, 2, 3, 1).reshape(-1, 3)
+    # (3, B*H*W): gathering receivers along dim 1 reads rows (for B = 1 a view; the rows
+    # of ``permute(0, 2, 3, 1).reshape(-1, 3)`` are column-strided and index_select of
+    # them was ~8 ms per 50k receivers, most of a 256² frame's lookup)
+    p_all = position.transpose(0, 1).reshape(3, -1)
+    n_all = normal.transpose(0, 1).reshape(3, -1)
     taps = 1 if g.settings.filter in ("hard", "vsm") else g.settings.pcf_taps * (
         2 if g.settings.filter == "pcss" else 1)
     per = max(1, TAP_CHUNK_ELEMENTS // (n_l * taps * 4))
+    padded = None  # padded once for every chunk
+    if g.settings.filter in ("pcf", "pcss") and g.depth.numel() <= PAD_MAP_ELEMENTS:
+        padded = _pad_maps(g.depth.reshape(-1, g.settings.map_size ** 2), g.settings.map_size)
     parts = []
     for k in range(0, pix.numel(), per):
         idx = pix[k:k + per]
-        p, n = p_all.index_select(0, idx), n_all.index_select(0, idx)
+        p, n = p_all.index_select(1, idx).T, n_all.index_select(1, idx).T  # (P, 3)
         item = torch.div(idx, h * w, rounding_mode="floor")
         cam_depth = None
         if g.layout == "cascades":
             cv = camera_view.to(p.dtype).index_select(0, item)
             cam_depth = -((cv[:, 2, :3] * p).sum(-1) + cv[:, 2, 3]).detach()
         view_idx, t = _select_view(g, p, item, cam_depth)
-        vis = _visibility_of_view(g, p, n, item, view_idx)
+        vis = _visibility_of_view(g, p, n, item, view_idx, padded)
         if g.layout == "cascades" and bool((t > 0).any()):
             nxt = torch.where(t > 0, (view_idx + 1).clamp_max(g.view.shape[2] - 1), view_idx)
             if not bool(g.rendered.all()):
                 nxt = torch.where(g.rendered.index_select(0, nxt.clamp_min(0).flatten()).view_as(
                     nxt), nxt, view_idx)
-            vis = torch.lerp(vis, _visibility_of_view(g, p, n, item, nxt), t)
+            vis = torch.lerp(vis, _visibility_of_view(g, p, n, item, nxt, padded), t)
         parts.append(vis)
     vis = torch.cat(parts)
     vis = 1 - g.settings.intensity * (1 - vis)

@@ -1,0 +1,83 @@
+"""Shadow lookups: the fast paths of ``shadow_visibility`` (every view's matrix applied to
+every receiver, padded maps gathered once per call, int32 indices) against the general
+ones (per-receiver matrices, unpadded maps), and a batch against its items one by one."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchraster as tr
+from torchraster.shading import shadows
+from torchraster.shading.shadows import (
+    ShadowSettings,
+    directional_views,
+    local_views,
+    render_shadow_maps,
+    shadow_visibility,
+)
+from torchraster.testing import raytrace as rt
+
+
+def _setup(kind: str, filt: str, batch: int = 2, normal_bias: float = 0.0, lights: int = 2):
+    verts, faces = rt.icosphere(0.5, (0.0, 0.5, 0.0), subdivisions=2)
+    pos, faces, cast = rt.ground_scene([(verts, faces)], 4.0)
+    pos = torch.stack([pos.float() + 0.05 * i for i in range(batch)])
+    casters = faces[cast]
+    bounds = torch.stack([pos.amin(1), pos.amax(1)], 1)
+    view = tr.camera.look_at([0.0, 2.5, 4.0], [0.0, 0.3, 0.0]).expand(batch, 4, 4)
+    proj = tr.camera.perspective(45.0, 1.0, 0.1).expand(batch, 4, 4)
+    st = ShadowSettings(map_size=64, filter=filt, normal_bias=normal_bias,
+                        cascades=2 if kind == "directional" else 1, pcf_taps=8)
+    if kind == "directional":
+        g = directional_views(torch.tensor([[[0.4, -1.0, 0.3], [-0.3, -1.0, 0.1]]])[:, :lights]
+                              .expand(batch, lights, 3), st, bounds, view, proj)
+    else:
+        g = local_views("point", torch.tensor([[[1.0, 2.0, 0.5], [-0.8, 1.6, 0.2]]])[:, :lights]
+                        .expand(batch, lights, 3), None, None, st, bounds)
+    render_shadow_maps([g], pos, casters)
+    # receivers: a grid on the floor and points on the sphere, facing up / outwards
+    xs = torch.linspace(-1.5, 1.5, 24)
+    gx, gz = torch.meshgrid(xs, xs, indexing="ij")
+    p = torch.stack([gx, torch.zeros_like(gx), gz])[None].expand(batch, 3, 24, 24).clone()
+    p[:, :, :4] = verts[:96].T.float().reshape(3, 4, 24)
+    n = torch.zeros_like(p)
+    n[:, 1] = 1
+    n[:, :, :4] = torch.nn.functional.normalize(p[:, :, :4] - torch.tensor(
+        [0.0, 0.5, 0.0])[:, None, None], dim=1)
+    recv = torch.rand(batch, 1, 24, 24, generator=torch.Generator().manual_seed(0)) < 0.8
+    return g, p, n, recv, view
+
+
+@pytest.mark.parametrize("kind", ["point", "directional"])
+@pytest.mark.parametrize("filt", ["hard", "pcf", "pcss", "vsm"])
+@pytest.mark.parametrize("normal_bias", [0.0, 1.0])
+def test_fast_paths_agree_with_general_ones(kind, filt, normal_bias, monkeypatch):
+    # views: 1 x 1 x 6 (cube) or 1 x 2 x 2 (cascades) <= DENSE_VIEWS: the dense path
+    g, p, n, recv, view = _setup(kind, filt, batch=1, normal_bias=normal_bias,
+                                 lights=1 if kind == "point" else 2)
+    assert g.view.shape[:3].numel() <= shadows.DENSE_VIEWS
+    fast = shadow_visibility(g, p, n, recv, view)
+    monkeypatch.setattr(shadows, "DENSE_VIEWS", 0)
+    monkeypatch.setattr(shadows, "PAD_MAP_ELEMENTS", 0)
+    general = shadow_visibility(g, p, n, recv, view)
+    partial = ((general > 0.01) & (general < 0.99)).float().mean()
+    assert partial > 0.01 or filt == "hard"  # penumbrae are looked up
+    assert ((fast - general).abs() > 1e-3).float().mean() < 0.002  # float rounding only
+    torch.testing.assert_close(fast, general, atol=0.02, rtol=0)
+
+
+@pytest.mark.parametrize("kind", ["point", "directional"])
+def test_batch_equals_items_one_by_one(kind):
+    g, p, n, recv, view = _setup(kind, "pcf")
+    both = shadow_visibility(g, p, n, recv, view)
+    for i in range(2):
+        one = shadows.ShadowMaps(
+            g.kind, g.lights, g.settings, g.layout, g.view[i:i + 1], g.proj[i:i + 1],
+            g.near[i:i + 1], g.far[i:i + 1], g.texel[i:i + 1], g.depth[i:i + 1],
+            None if g.splits is None else g.splits[i:i + 1], g.rendered,
+            None if g.light_position is None else g.light_position[i:i + 1],
+            None if g.light_direction is None else g.light_direction[i:i + 1])
+        alone = shadow_visibility(one, p[i:i + 1], n[i:i + 1], recv[i:i + 1], view[i:i + 1])
+        torch.testing.assert_close(both[i:i + 1], alone, atol=1e-5, rtol=0)
+        assert (both[i:i + 1][~recv[i:i + 1, None].expand_as(alone)] == 1).all()
