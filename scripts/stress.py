@@ -629,7 +629,8 @@ def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
     shading = "pbr" if not wild or _chance(gen, 0.6) else _pick(gen, (
         "blinn_phong", "half_lambert", "toon", "headlight", "unlit"))
     # the optional passes: screen-space reflections, fog with light shafts, dissolve
-    ssr = tr.post.SSR(max_steps=_randint(gen, 4, 32)) if _chance(gen, 0.15) else None
+    ssr = tr.post.SSR(max_steps=_randint(gen, 4, 32)) if _chance(gen, 0.15) and (
+        env is None or env.sun_threshold is None) else None  # SSR refuses an extracted sun
     fog = tr.Fog(density=_pick(gen, (0.0, 1e-3, 0.3, 50.0)), height_falloff=_pick(
         gen, (0.0, 1e-6, 0.5, 20.0)), steps=_randint(gen, 1, 8),
         light_transmittance=_chance(gen, 0.8)) if _chance(gen, 0.15) else None

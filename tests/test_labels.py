@@ -272,6 +272,50 @@ def test_amodal_is_each_object_rendered_alone():
     assert hidden > 20  # box 2 is partly behind box 1
 
 
+@pytest.mark.parametrize("case", ["spread", "off-screen and near plane"])
+def test_amodal_equals_full_frame_rasters(case):
+    """Each object's mask is exactly the object rasterized alone over the whole frame
+    (``rasterize_depth`` per object, float32), for objects small and large, partly
+    off-screen, wholly off-screen and around the eye, in a batch of views. (Rasterizing
+    each object over its pixel box only, through a clip-space crop, was 1.7x cheaper at
+    1024² but not exact: float rounding of the cropped coordinates flipped pixel centres on
+    edges in 1 of 300 stress scenes.)"""
+    from torchraster.raster import rasterize_depth
+
+    g = torch.Generator().manual_seed(7)
+    meshes, mats = [], []
+    for k in range(7):
+        sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.15 + 0.1 * k)
+        meshes.append(Mesh(torch.tensor(sphere.vertices, dtype=torch.float32),
+                           torch.tensor(sphere.faces, dtype=torch.int64)))
+        m = np.eye(4)
+        m[:3, 3] = (torch.rand(3, generator=g) * 4 - 2).numpy()
+        mats.append(m)
+    floor = trimesh.creation.box((20.0, 0.01, 20.0))
+    meshes.append(Mesh(torch.tensor(floor.vertices, dtype=torch.float32),
+                       torch.tensor(floor.faces, dtype=torch.int64)))
+    mats.append(np.eye(4))
+    if case != "spread":
+        mats[0][:3, 3] = (30.0, 0.0, 0.0)  # outside every view
+        mats[1][:3, 3] = (0.0, 0.5, 2.9)  # around the eye of the first view: w <= 0
+    scene = tr.RenderScene.from_objects(meshes, torch.tensor(np.stack(mats),
+                                                             dtype=torch.float32))
+    h, w = 45, 61
+    view = tr.camera.orbit(torch.tensor([0.0, 70.0]), torch.tensor([20.0, 35.0]),
+                           torch.tensor([3.0, 5.0]))
+    proj = tr.camera.perspective(60.0, w / h, 0.05)
+    out = tr.Renderer((h, w), shading="unlit")(scene, view, proj, channels=["amodal"])
+    amodal = out.gbuffer["amodal"]
+    clip = tr.camera.transform_points(scene.positions, proj @ view)
+    ranges = scene.object_face_ranges()
+    for bi in range(2):
+        for k in range(len(meshes)):
+            alone = rasterize_depth(clip[bi:bi + 1], scene.faces, (h, w),
+                                    face_ranges=ranges[k:k + 1])[0]
+            assert torch.equal(amodal[bi, k], torch.isfinite(alone)), (bi, k)
+    assert amodal.any((2, 3)).sum() >= 10
+
+
 def test_amodal_per_batch_item_with_face_ranges():
     meshes, mats, cats = _objects()
     scene = tr.RenderScene.from_objects(meshes, torch.tensor(mats), cats)

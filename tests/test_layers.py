@@ -11,7 +11,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "torchraster"
 #: Layers bottom-up (docs/design.md, "Layers"); a module may import its own layer and below.
 LAYERS: list[set[str]] = [
     {"numerics", "_validate", "frame_pool"},
-    {"camera", "mesh", "material", "texture", "anisotropic", "mip_atlas", "hdr_io",
+    {"camera", "mesh", "material", "mip", "texture", "anisotropic", "mip_atlas", "hdr_io",
      "animation", "randomize"},
     {"raster", "io"},
     {"gbuffer", "scene", "labels", "motion", "testing"},

@@ -33,7 +33,7 @@ from collections.abc import Sequence
 
 import torch
 
-from .texture import LOD_RHO2_FLOOR, sample_levels
+from .mip import LOD_RHO2_FLOOR, sample_levels
 
 __all__ = ["MAX_TEXTURE_ANISOTROPY", "check_max_anisotropy", "anisotropic_footprint",
            "sample_anisotropic", "sample_anisotropic_dense"]
