@@ -134,3 +134,26 @@ def test_depth_stays_in_range_at_an_infinite_far_plane() -> None:
     hit = frags.face_id >= 0
     assert int(hit.sum()) > 100
     assert float(frags.depth[hit].abs().max()) <= 1.0
+
+
+def test_rasterize_coverage_is_the_face_id_mask():
+    """``rasterize_coverage`` = ``rasterize(...).face_id >= 0`` (culling, face ranges and
+    clipping at the near plane included)."""
+    import trimesh
+
+    from torchraster.raster import rasterize_coverage
+
+    ico = trimesh.creation.icosphere(subdivisions=2)
+    verts = torch.tensor(ico.vertices, dtype=torch.float32)
+    faces = torch.tensor(ico.faces, dtype=torch.int64)
+    view = tr.camera.orbit(torch.tensor([0.0, 90.0, 200.0]), torch.tensor([10.0, -20.0, 40.0]),
+                           torch.tensor([3.0, 1.2, 0.9]))  # the last two cross the near plane
+    clip = tr.camera.transform_points(verts, tr.camera.perspective(50.0, 1.3, 0.5) @ view)
+    ranges = torch.tensor([[0, 320], [40, 200], [100, 101]])
+    for cull in (False, True):
+        for fr in (None, ranges):
+            got = rasterize_coverage(clip, faces, (23, 30), cull, fr)
+            want = tr.rasterize(clip, faces, (23, 30), cull_backfaces=cull,
+                                face_ranges=fr).face_id >= 0
+            assert got.dtype == torch.bool and torch.equal(got, want)
+            assert 0 < int(got.sum()) < got.numel()

@@ -56,7 +56,7 @@ from .motion import (
 from .numerics import finish_low_precision, safe_normalize
 from .post.ssr import environment_specular, specular_weight
 from .raster import Fragments, antialias, rasterize
-from .raster.rasterize import rasterize_depth
+from .raster.rasterize import rasterize_coverage
 from .scene import RenderScene, as_render_scene
 from .shading.ibl import Environment, content_key, shade_ibl
 from .shading.lighting import shade
@@ -1251,9 +1251,8 @@ def _amodal_masks(plan: RenderPlan, scene: RenderScene, clip: torch.Tensor,
         for idx in todo.split(chunk):
             pos = clip[:1].expand(idx.numel(), -1, -1) if shared else clip.index_select(
                 0, idx // n)
-            depth = rasterize_depth(pos.detach(), scene.faces, plan.resolution, cull,
-                                    ranges.index_select(0, idx))
-            out[idx] = torch.isfinite(depth)
+            out[idx] = rasterize_coverage(pos.detach(), scene.faces, plan.resolution, cull,
+                                          ranges.index_select(0, idx))
     return out.view(b, n, h, w)
 
 

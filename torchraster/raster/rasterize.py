@@ -295,6 +295,40 @@ def rasterize_depth(
     return key_depth(keys[0]).view(clip_pos.shape[0], h, w)
 
 
+def rasterize_coverage(
+    clip_pos: torch.Tensor,
+    faces: torch.Tensor,
+    resolution: tuple[int, int] | int,
+    cull_backfaces: bool | torch.Tensor = False,
+    face_ranges: torch.Tensor | None = None,
+    *,
+    tile: int = DEFAULT_TILE,
+    memory_budget: int = DEFAULT_MEMORY_BUDGET,
+) -> torch.Tensor:
+    """Which pixels any triangle covers: the visibility pass without depths or barycentrics
+    (silhouette masks, e.g. each object's amodal mask).
+
+    Args:
+        clip_pos, faces, resolution, cull_backfaces, face_ranges, tile, memory_budget: as
+            in :func:`rasterize`.
+
+    Returns:
+        ``(B, H, W)`` bool, exactly ``rasterize(...).face_id >= 0`` (the same coverage rule
+        and clipping), without converting a depth.
+
+    Example:
+        >>> clip = torch.tensor([[[-1.0, -1, 0.5, 1], [3, -1, 0.5, 1], [-1, 3, 0.5, 1]]])
+        >>> rasterize_coverage(clip, torch.tensor([[0, 1, 2]]), (2, 2)).tolist()
+        [[[True, True], [True, True]]]
+    """
+    clip_pos, faces, (h, w), face_ranges = check_inputs(clip_pos, faces, resolution,
+                                                         face_ranges)
+    cull_backfaces = check_options(clip_pos, faces, cull_backfaces, tile)
+    keys = resolve_keys(clip_pos, faces, (h, w), cull_backfaces, face_ranges, int(tile),
+                        memory_budget, _DEPTH_BYTES_PER_PIXEL)
+    return (keys[0] != EMPTY_KEY).view(clip_pos.shape[0], h, w)
+
+
 #: Peak bytes per pixel of rasterize_depth beyond the chunk budget: the int64 key and the
 #: float32 result.
 _DEPTH_BYTES_PER_PIXEL = 16
