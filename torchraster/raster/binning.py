@@ -41,6 +41,11 @@ REF_X, REF_Y, REF_Z = 14, 15, 16  #: the depth plane's reference vertex and its 
 COEF_ROWS = 17
 
 
+#: Rows of a ``(4, N)`` int64 inclusive pixel box (``TriangleSetup.box`` and the boxes
+#: derived from it): xmin, xmax, ymin, ymax.
+BOX_XMIN, BOX_XMAX, BOX_YMIN, BOX_YMAX = 0, 1, 2, 3
+
+
 @dataclass
 class TriangleSetup:
     """Per-triangle coverage and depth equations of N triangles, component-major.
@@ -50,7 +55,8 @@ class TriangleSetup:
            DZDY), reference vertex (REF_X, REF_Y) and its depth (REF_Z). Edge e (opposite
            vertex e) covers p iff A x + (B y + C) >= threshold; depth = z0 + dzdx (x - x0)
            + dzdy (y - y0).
-    box:   (4, N) int64 inclusive pixel box xmin, xmax, ymin, ymax (clamped to the image)
+    box:   (4, N) int64 inclusive pixel box, rows BOX_XMIN, BOX_XMAX, BOX_YMIN, BOX_YMAX
+           (clamped to the image)
     key_lo:(N,) int64 face id (low 32 bits of the depth-resolve key)
     batch: (N,) int64 batch item
     """
@@ -127,8 +133,8 @@ def plane_lower_bound(plane: torch.Tensor, box: torch.Tensor) -> torch.Tensor:
         box: (4, N) int64 inclusive pixel boxes xmin, xmax, ymin, ymax.
     """
     dzdx, dzdy, x0, y0, z0 = plane
-    lo_x, hi_x = box[0].to(plane.dtype) - x0, box[1].to(plane.dtype) - x0
-    lo_y, hi_y = box[2].to(plane.dtype) - y0, box[3].to(plane.dtype) - y0
+    lo_x, hi_x = box[BOX_XMIN].to(plane.dtype) - x0, box[BOX_XMAX].to(plane.dtype) - x0
+    lo_y, hi_y = box[BOX_YMIN].to(plane.dtype) - y0, box[BOX_YMAX].to(plane.dtype) - y0
     zx = torch.minimum(dzdx * lo_x, dzdx * hi_x)
     zy = torch.minimum(dzdy * lo_y, dzdy * hi_y)
     span = (dzdx.abs() * torch.maximum(lo_x.abs(), hi_x.abs())
@@ -231,8 +237,8 @@ def _block_shapes(box: torch.Tensor, resolution: tuple[int, int], tile: int):
     faster on the six scripts/bench_raster.py rows compared (scripts/ab_raster.py), the
     launches saved outweighing the extra tested centres."""
     h, w = resolution
-    bw = box[1] - box[0] + 1
-    bh = box[3] - box[2] + 1
+    bw = box[BOX_XMAX] - box[BOX_XMIN] + 1
+    bh = box[BOX_YMAX] - box[BOX_YMIN] + 1
     small = (bw <= tile) & (bh <= tile)
     sizes = torch.tensor(block_sizes(tile), device=box.device)
     lut = sizes[torch.searchsorted(sizes, torch.arange(tile + 1, device=box.device).clamp(1))]
@@ -287,10 +293,11 @@ def tested_boxes(box: torch.Tensor, resolution: tuple[int, int], tile: int) -> t
     h, w = resolution
     small, kh, kw = _block_shapes(box, resolution, tile)
     th, tw = min(tile, h), min(tile, w)
-    x0 = torch.where(small, box[0].clamp(max=w - kw), ((box[0] // tile) * tile).clamp(max=w - tw))
-    y0 = torch.where(small, box[2].clamp(max=h - kh), ((box[2] // tile) * tile).clamp(max=h - th))
-    x1 = torch.where(small, x0 + kw, ((box[1] // tile) * tile).clamp(max=w - tw) + tw) - 1
-    y1 = torch.where(small, y0 + kh, ((box[3] // tile) * tile).clamp(max=h - th) + th) - 1
+    bx0, by0 = box[BOX_XMIN], box[BOX_YMIN]
+    x0 = torch.where(small, bx0.clamp(max=w - kw), ((bx0 // tile) * tile).clamp(max=w - tw))
+    y0 = torch.where(small, by0.clamp(max=h - kh), ((by0 // tile) * tile).clamp(max=h - th))
+    x1 = torch.where(small, x0 + kw, ((box[BOX_XMAX] // tile) * tile).clamp(max=w - tw) + tw) - 1
+    y1 = torch.where(small, y0 + kh, ((box[BOX_YMAX] // tile) * tile).clamp(max=h - th) + th) - 1
     return torch.stack([x0, x1, y0, y1])
 
 
@@ -325,8 +332,8 @@ def _bin_large(
     h, w = resolution
     th, tw = min(tile, h), min(tile, w)
     box = take_columns(setup.box, big)
-    tx0, tx1 = box[0] // tile, box[1] // tile
-    ty0, ty1 = box[2] // tile, box[3] // tile
+    tx0, tx1 = box[BOX_XMIN] // tile, box[BOX_XMAX] // tile
+    ty0, ty1 = box[BOX_YMIN] // tile, box[BOX_YMAX] // tile
     ntx = tx1 - tx0 + 1
     n_tiles = ntx * (ty1 - ty0 + 1)
     per_chunk = max(1, max_candidates // (th * tw))

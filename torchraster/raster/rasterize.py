@@ -28,6 +28,10 @@ from .. import frame_pool
 from .._validate import check_frame_memory, check_has_data, check_resolution, check_tensor
 from ..numerics import floor_div_exact, take_columns, to_compute
 from .binning import (
+    BOX_XMAX,
+    BOX_XMIN,
+    BOX_YMAX,
+    BOX_YMIN,
     DZDX,
     DZDY,
     EDGE_A,
@@ -446,7 +450,8 @@ def _back_candidates(screen: ScreenTriangles, front: torch.Tensor) -> int:
     """Work of the valid back-facing triangles of ``screen``: the pixel centres in their
     boxes plus :data:`OCCLUSION_TRIANGLE_WORK` per triangle."""
     box = screen.box
-    size = (box[1] - box[0] + 1) * (box[3] - box[2] + 1) + OCCLUSION_TRIANGLE_WORK
+    size = ((box[BOX_XMAX] - box[BOX_XMIN] + 1) * (box[BOX_YMAX] - box[BOX_YMIN] + 1)
+            + OCCLUSION_TRIANGLE_WORK)
     return int(size.masked_fill_(front | ~screen.valid, 0).sum())
 
 
@@ -508,8 +513,8 @@ def ragged_keys(setup: TriangleSetup, runs: list[tuple[int, int, int, int]],
     tri = (torch.arange(run_of.numel(), device=dev) - first.index_select(0, run_of)
            + spec[:, 2].index_select(0, run_of))
     kh, kw = spec[:, 0].index_select(0, run_of), spec[:, 1].index_select(0, run_of)
-    x0 = setup.box[0].index_select(0, tri).clamp_(max=w - kw)  # as in bin_triangles
-    y0 = setup.box[2].index_select(0, tri).clamp_(max=h - kh)
+    x0 = setup.box[BOX_XMIN].index_select(0, tri).clamp_(max=w - kw)  # as in bin_triangles
+    y0 = setup.box[BOX_YMIN].index_select(0, tri).clamp_(max=h - kh)
     cand = kh * kw
     cum = torch.cumsum(cand, 0)
     total = int(cum[-1])
@@ -568,7 +573,8 @@ def _visible_subset(screen: ScreenTriangles, idx: torch.Tensor, keys: torch.Tens
     x, y, z = screen.pos.view(9, -1).index_select(1, idx).view(3, 3, -1)
     box = tested_boxes(take_columns(screen.box, idx), (h, w), tile)
     bound = depth_key(plane_lower_bound(depth_planes(x, y, z), box).clamp_(max=1.0))
-    size = torch.maximum(box[1] - box[0], box[3] - box[2])  # box side - 1
+    # the box's longer side - 1
+    size = torch.maximum(box[BOX_XMAX] - box[BOX_XMIN], box[BOX_YMAX] - box[BOX_YMIN])
     level = torch.zeros_like(size)
     for k in range(1, len(pyramid)):
         level += size >= (_HIZ_TILE << (k - 1))
@@ -579,8 +585,8 @@ def _visible_subset(screen: ScreenTriangles, idx: torch.Tensor, keys: torch.Tens
     offset, height, width = meta.index_select(1, level.clamp_(max=len(pyramid) - 1))
     shift = level + (_HIZ_TILE.bit_length() - 1)
     base = offset + (items - lo) * height * width
-    ys0, ys1 = (box[2] >> shift) * width + base, (box[3] >> shift) * width + base
-    xs0, xs1 = box[0] >> shift, box[1] >> shift
+    ys0, ys1 = (box[BOX_YMIN] >> shift) * width + base, (box[BOX_YMAX] >> shift) * width + base
+    xs0, xs1 = box[BOX_XMIN] >> shift, box[BOX_XMAX] >> shift
     tile_max = torch.maximum(
         torch.maximum(flat.index_select(0, ys0 + xs0), flat.index_select(0, ys0 + xs1)),
         torch.maximum(flat.index_select(0, ys1 + xs0), flat.index_select(0, ys1 + xs1)))
