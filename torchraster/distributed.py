@@ -296,8 +296,25 @@ def render_dataset(configs: list[DatasetConfig], out_dir: str | Path, *,
             shared filesystem?).
         OutputError: the manifest cannot be written.
     """
+    if world is not None:
+        return _render_dataset(configs, out_dir, device, force, world, verbose,
+                               show_traceback, progress, log)
+    # a process group made here is left here: a process exiting with gloo's threads still
+    # running may abort ("terminate called without an active exception") after its work
+    world = init_world()
+    try:
+        return _render_dataset(configs, out_dir, device, force, world, verbose,
+                               show_traceback, progress, log)
+    finally:
+        world.close()
+
+
+def _render_dataset(configs: list[DatasetConfig], out_dir: str | Path,
+                    device: str | torch.device, force: bool, world: World, verbose: bool,
+                    show_traceback: bool, progress: bool,
+                    log: Callable[[str], None] | None) -> RunSummary:
+    """:func:`render_dataset` in the given ``world``."""
     start = time.perf_counter()
-    world = world if world is not None else init_world()
     out_dir = Path(out_dir)
     jobs, plans = [], []
     for ci, dc in enumerate(configs):
