@@ -373,3 +373,31 @@ def test_ddp_example_fits_the_colour():
     assert res.returncode == 0, res.stderr[-3000:]
     last = res.stdout.strip().splitlines()[-1].split()
     assert int(last[0]) == 20 and float(last[2]) < 0.1  # colour error, from 0.55
+
+
+API_SCRIPT = """
+import sys
+from pathlib import Path
+import torch
+import torchraster as tr
+from torchraster.distributed import DatasetConfig, render_dataset
+cfg = tr.load_config(sys.argv[1])
+s = render_dataset([DatasetConfig(Path(sys.argv[1]), "set", cfg)], sys.argv[2], progress=False)
+print("left", torch.distributed.is_initialized(), s.written)
+"""
+
+
+@pytest.mark.slow
+def test_python_api_under_torchrun_leaves_its_process_group(dataset, tmp_path):
+    """``render_dataset`` called from Python under ``torchrun`` (no world given) makes the
+    process group and leaves it before returning: a process that exits with gloo's threads
+    running may abort after its work ('terminate called without an active exception')."""
+    script = tmp_path / "api.py"
+    script.write_text(API_SCRIPT)
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2",
+           "--rdzv-backend", "c10d", "--rdzv-endpoint", "127.0.0.1:0", str(script),
+           str(dataset / "set.yaml"), str(tmp_path / "out")]
+    res = subprocess.run(cmd, env=_env(), capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    lines = [x for x in res.stdout.splitlines() if x.startswith("left")]
+    assert lines == ["left False 9"] * 2, res.stdout
