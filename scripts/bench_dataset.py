@@ -241,7 +241,12 @@ def main() -> None:
         + markdown_table(["how", "processes", "frames / s", "per frame", "peak RSS"], rows)
         + "\n\n" + blender_text(args.blender, args.frames, fps))
     if not args.no_write:
-        update_section("dataset", body)
+        command = None
+        if args.blender:  # the command without this machine's path to its bpy Python
+            argv = [a if a != args.blender else "PYTHON" for a in sys.argv[1:]]
+            command = ("python " + " ".join([os.path.relpath(sys.argv[0]), *argv])
+                       + " (PYTHON: a virtualenv with `pip install bpy==5.0.1`)")
+        update_section("dataset", body, command)
 
 
 if __name__ == "__main__":

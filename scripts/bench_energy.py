@@ -271,7 +271,7 @@ BEFORE_REV = "623d366"  # torchraster/shading/ibl.py before the one-call lookup 
 def bench_ibl_specular(quick: bool, images: bool) -> str:
     path, path2 = ENVMAPS / "venice_sunset_1k.hdr", ENVMAPS / SECOND_MAP
     if not path.exists() or not path2.exists():
-        return "## IBL specular\n\n(skipped: ../shared/data/envmaps not present)\n"
+        return "## IBL specular\n\n(skipped: the 1k Poly Haven maps are not present)\n"
     torch.set_num_threads(1)
     maps = {"venice": read_hdr(path), "overpass": read_hdr(path2)}
     k = 16 if quick else 64
@@ -361,7 +361,8 @@ def bench_ibl_specular(quick: bool, images: bool) -> str:
         f"at {k} random (n, v) pairs (n.v spread over (0, 1]) against the brute-force "
         "integral of the GGX lobe over all 1024x512 texels (float64), on venice_sunset_1k "
         "(sunset; its sun carries ~3 % of the power) and pedestrian_overpass_1k (a clear "
-        "sun with ~55 % of the power), both from ../shared/data/envmaps. 2 % mean error is "
+        "sun with ~55 % of the power), both Poly Haven maps (CC0) at 1k, not shipped with "
+        "the repository (without them the script skips this section). 2 % mean error is "
         "~40 dB. Time = `shade_ibl` (diffuse + specular) on a "
         f"{res}x{res} frame of random normals and views on venice, roughness 0.6, CPU time "
         "of 1 thread, median of 7, per megapixel; the prefiltered chain / mip pyramid / sun "

@@ -457,3 +457,27 @@ def test_face_depth_slope_matches_finite_differences():
     torch.testing.assert_close(got_x, fd_x[r, c - 1][finite], rtol=0.02, atol=1e-4)
     torch.testing.assert_close(got_y, fd_y[r - 1, c][finite], rtol=0.02, atol=1e-4)
     assert float(got_x.abs().mean()) > 1e-3  # a tilted plane: the test can fail
+
+
+def test_kept_raster_only_for_the_same_inputs():
+    """The renderer's kept neighbour raster is returned only for the same clip positions,
+    culling, face ranges and (unchanged) faces: anything else rasterizes anew and equals
+    ``rasterize`` of those inputs."""
+    from torchraster.renderer import _RasterMemo
+
+    mesh, view, proj, _, _ = _spot_frames()
+    plan = tr.Renderer((H, W), shading="unlit").plan(tr.RenderScene.from_mesh(mesh), None,
+                                                    None, [])
+    clip = tr.camera.transform_points(mesh.positions, proj @ view).reshape(1, -1, 4)
+    faces = mesh.faces.clone()
+    memo = _RasterMemo()
+    kept = memo.rasterize(clip, faces, plan, False, None, keep=True)
+    assert memo.rasterize(clip.clone(), faces, plan, False, None) is kept
+    ranges = torch.tensor([[0, faces.shape[0] // 2]])
+    for cull, fr in ((True, None), (False, ranges)):
+        got = memo.rasterize(clip, faces, plan, cull, fr)
+        want = tr.rasterize(clip, faces, (H, W), cull_backfaces=cull, face_ranges=fr)
+        assert got is not kept and torch.equal(got.face_id, want.face_id), (cull, fr)
+    faces[:, [1, 2]] = faces[:, [2, 1]].clone()  # changed in place: not the kept raster
+    assert memo.rasterize(clip, faces, plan, True, None) is not kept
+    assert memo.rasterize(clip, faces, plan, False, None) is not kept

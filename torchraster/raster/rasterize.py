@@ -291,12 +291,9 @@ def rasterize_depth(
         tensor([[[ 0.5000,  0.5000],
                  [-0.5000,  0.5000]]])
     """
-    clip_pos, faces, (h, w), face_ranges = check_inputs(clip_pos, faces, resolution,
-                                                         face_ranges)
-    cull_backfaces = check_options(clip_pos, faces, cull_backfaces, tile)
-    keys = resolve_keys(clip_pos, faces, (h, w), cull_backfaces, face_ranges, int(tile),
-                        memory_budget, _DEPTH_BYTES_PER_PIXEL)
-    return key_depth(keys[0]).view(clip_pos.shape[0], h, w)
+    keys = _nearest_keys(clip_pos, faces, resolution, cull_backfaces, face_ranges, tile,
+                         memory_budget)
+    return key_depth(keys)
 
 
 def rasterize_coverage(
@@ -325,12 +322,21 @@ def rasterize_coverage(
         >>> rasterize_coverage(clip, torch.tensor([[0, 1, 2]]), (2, 2)).tolist()
         [[[True, True], [True, True]]]
     """
+    keys = _nearest_keys(clip_pos, faces, resolution, cull_backfaces, face_ranges, tile,
+                         memory_budget)
+    return keys != EMPTY_KEY
+
+
+def _nearest_keys(clip_pos, faces, resolution, cull_backfaces, face_ranges, tile,
+                  memory_budget) -> torch.Tensor:
+    """``(B, H, W)`` int64 nearest resolve key per pixel (``EMPTY_KEY`` where empty): the
+    checked visibility pass of :func:`rasterize_depth` and :func:`rasterize_coverage`."""
     clip_pos, faces, (h, w), face_ranges = check_inputs(clip_pos, faces, resolution,
                                                          face_ranges)
     cull_backfaces = check_options(clip_pos, faces, cull_backfaces, tile)
     keys = resolve_keys(clip_pos, faces, (h, w), cull_backfaces, face_ranges, int(tile),
                         memory_budget, _DEPTH_BYTES_PER_PIXEL)
-    return (keys[0] != EMPTY_KEY).view(clip_pos.shape[0], h, w)
+    return keys[0].view(clip_pos.shape[0], h, w)
 
 
 #: Peak bytes per pixel of rasterize_depth beyond the chunk budget: the int64 key and the
