@@ -119,8 +119,9 @@ def run(args: argparse.Namespace) -> dict:
     holdout = common.ring_views(args.holdout, DISTANCE, ELEVATIONS, target=centre,
                                 offset_deg=180.0 / max(1, args.views))
     proj = tr.camera.perspective(FOV_DEG, 1.0, 0.1)
-    renderer = tr.Renderer(args.resolution, shading="pbr", antialias=True,
-                           supersample=args.supersample)
+    renderer = tr.Renderer(args.resolution,
+                           shading="pbr",
+                           raster=tr.RasterSettings(antialias=True, supersample=args.supersample))
     true_lights = lights_of(torch.tensor(TRUE_LIGHT), torch.tensor(TRUE_INTENSITY))
 
     def render(material: tr.Material, lights: tr.Lights, cams: torch.Tensor,
@@ -129,8 +130,9 @@ def run(args: argparse.Namespace) -> dict:
 
     reference = renderer
     if args.target_supersample > 1:
-        reference = tr.Renderer(args.resolution, shading="pbr",
-                                supersample=args.target_supersample)
+        reference = tr.Renderer(args.resolution,
+                                shading="pbr",
+                                raster=tr.RasterSettings(supersample=args.target_supersample))
     with torch.no_grad():
         target = render(true_material, true_lights, views, reference)
         target_holdout = (render(true_material, true_lights, holdout, reference)

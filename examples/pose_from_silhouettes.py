@@ -100,9 +100,11 @@ def run(args: argparse.Namespace) -> dict:
 
     res = args.resolution
     with torch.no_grad():
-        reference = tr.Renderer(res, shading="unlit", supersample=4)
+        reference = tr.Renderer(res, shading="unlit", raster=tr.RasterSettings(supersample=4))
         target = reference(mesh, true_view, proj).alpha
-    renderer = tr.Renderer(res, shading="unlit", antialias=not args.no_antialias)
+    renderer = tr.Renderer(res,
+                           shading="unlit",
+                           raster=tr.RasterSettings(antialias=not args.no_antialias))
 
     w = torch.zeros(args.views, 3, requires_grad=True)
     t = torch.zeros(args.views, 3, requires_grad=True)

@@ -149,7 +149,9 @@ def optimise(args: argparse.Namespace, antialias: bool, targets: dict, label: st
     param = SmoothParam(base, edges, args.smooth) if args.smooth > 0 else OffsetParam(base)
     opt = torch.optim.Adam(param.parameters(), lr=args.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, args.iterations, args.lr * 0.05)
-    renderer = tr.Renderer(args.resolution, shading="headlight", antialias=antialias)
+    renderer = tr.Renderer(args.resolution,
+                           shading="headlight",
+                           raster=tr.RasterSettings(antialias=antialias))
     views, proj = targets["views"], targets["proj"]
     target_points = targets["points"]
 
@@ -192,7 +194,9 @@ def prepare(args: argparse.Namespace) -> dict:
     views = common.ring_views(args.views, DISTANCE, ELEVATIONS)
     proj = tr.camera.perspective(FOV_DEG, 1.0, 0.1)
     with torch.no_grad():
-        out = tr.Renderer(args.resolution, shading="headlight", supersample=4)(mesh, views, proj)
+        out = tr.Renderer(args.resolution,
+                          shading="headlight",
+                          raster=tr.RasterSettings(supersample=4))(mesh, views, proj)
     points = surface_points(target_mesh.vertices, target_mesh.faces, args.points, args.seed)
     # the Chamfer distance between two samples of the target itself: what a perfect shape
     # would score with this many points

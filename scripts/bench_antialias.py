@@ -231,7 +231,7 @@ def renderer_rows(repeats: int) -> list:
             times: dict[bool, list[float]] = {False: [], True: []}
             for rep in range(repeats + 1):
                 for aa in (False, True):
-                    renderer = tr.Renderer(res, antialias=aa)
+                    renderer = tr.Renderer(res, raster=tr.RasterSettings(antialias=aa))
                     pos = mesh.positions.clone().requires_grad_(grad)
                     scene = tr.RenderScene(pos, mesh.faces, mesh.normals, mesh.uvs,
                                            materials=[mesh.material])

@@ -36,8 +36,10 @@ from torchraster.testing import raytrace as rt
 IMAGES = Path(__file__).resolve().parent.parent / "docs" / "images"
 RES = 256
 REFERENCE = 8
-SETTINGS = [("1x", {}), *[(f"supersample {s}", {"supersample": s}) for s in (2, 3, 4)],
-            *[(f"edge_supersample {k}", {"edge_supersample": k}) for k in (2, 3, 4)]]
+SETTINGS = [("1x", tr.RasterSettings()),
+            *[(f"supersample {s}", tr.RasterSettings(supersample=s)) for s in (2, 3, 4)],
+            *[(f"edge_supersample {k}", tr.RasterSettings(edge_supersample=k))
+              for k in (2, 3, 4)]]
 
 
 def _ambient(level: float) -> torch.Tensor:
@@ -97,9 +99,10 @@ def psnr(a: torch.Tensor, ref: torch.Tensor) -> float:
 
 
 def measure(name: str, scene, view, proj, lights, repeats: int) -> list[list[object]]:
-    renderers = {label: tr.Renderer(RES, **kw) for label, kw in SETTINGS}
+    renderers = {label: tr.Renderer(RES, raster=raster) for label, raster in SETTINGS}
     with torch.no_grad():
-        ref = tr.Renderer(RES, supersample=REFERENCE)(scene, view, proj, lights).image
+        ref = tr.Renderer(RES, raster=tr.RasterSettings(supersample=REFERENCE))(
+            scene, view, proj, lights).image
         outs = {label: r(scene, view, proj, lights) for label, r in renderers.items()}  # warm
         times: dict[str, list[float]] = {label: [] for label in renderers}
         for _ in range(repeats):
@@ -122,7 +125,7 @@ def measure(name: str, scene, view, proj, lights, repeats: int) -> list[list[obj
 def picture(scene, view, proj, lights, path: Path) -> None:
     """Crop at a shadow edge, 4x nearest zoom: 1x | edge_supersample 4 | reference."""
     with torch.no_grad():
-        imgs = [tr.Renderer(RES, **kw)(scene, view, proj, lights).image
+        imgs = [tr.Renderer(RES, raster=tr.RasterSettings(**kw))(scene, view, proj, lights).image
                 for kw in ({}, {"edge_supersample": 4}, {"supersample": REFERENCE})]
     top, left, size, zoom = 100, 64, 64, 4
     tiles = []

@@ -68,7 +68,9 @@ def supersampling(repeats: int, size: int) -> str:
 
     def render(s: int) -> torch.Tensor:
         with torch.no_grad():
-            out = tr.Renderer((size, size), shading="headlight", supersample=s)(scene, view, proj)
+            out = tr.Renderer((size, size),
+                              shading="headlight",
+                              raster=tr.RasterSettings(supersample=s))(scene, view, proj)
         return out.image.clamp(0, 1) ** (1 / 2.2)
 
     ref = render(8)

@@ -49,14 +49,15 @@ def main() -> None:
 
     model_rows = [("pbr (Cook-Torrance)", {"shading": "pbr"})]
     model_rows += [(shading + (" (bands 3, rim)" if shading == "toon" else ""),
-                    {"shading": shading, "shading_options": toon if shading == "toon" else None})
+                    {"shading": tr.ShadingSettings(shading, toon if shading == "toon" else {})})
                    for shading in ("blinn_phong", "half_lambert", "toon")]
     effect_rows = [
         ("dissolve t=0.5 (4 depth layers)", {"dissolve": Dissolve(threshold=0.5)}),
         ("dissolve t=0.5, alpha_layers=1", {"dissolve": Dissolve(threshold=0.5),
-                                            "alpha_layers": 1}),
-        ("background image, cover", {"background_image": sky}),
-        ("background image, contain", {"background_image": sky, "background_fit": "contain"})]
+                                            "raster": tr.RasterSettings(alpha_layers=1)}),
+        ("background image, cover", {"background": tr.BackgroundSettings(image=sky)}),
+        ("background image, contain", {"background": tr.BackgroundSettings(image=sky,
+                                                                           fit="contain")})]
     renderers = {name: tr.Renderer(size, shadows=False, **kwargs)
                  for name, kwargs in model_rows + effect_rows}
     # rounds interleave the configurations, so load from other jobs spreads over all rows

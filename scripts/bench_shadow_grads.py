@@ -177,7 +177,7 @@ def intensity_row(filt: str) -> dict:
     st = settings(filt)
     view = tr.camera.look_at([0.0, 2.5, 3.0], [0.0, 0.2, 0.0]).to(F64)
     proj = tr.camera.perspective(50.0, 1.0, 0.1).to(F64)
-    r = tr.Renderer(24, shadow_settings=st)
+    r = tr.Renderer(24, shadows=st)
     r.shadow_cache = None
     w = torch.rand(1, 3, 24, 24, dtype=F64, generator=torch.Generator().manual_seed(1))
 

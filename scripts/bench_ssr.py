@@ -151,7 +151,7 @@ def picture(path: Path) -> None:
     proj = perspective(40.0, 1.0, 0.1, 100.0)
     images = []
     for ssr in (None, SSR()):
-        renderer = tr.Renderer(256, ssr=ssr, supersample=2)
+        renderer = tr.Renderer(256, ssr=ssr, raster=tr.RasterSettings(supersample=2))
         images.append(renderer(scene, view, proj, lights=lights, environment=env).image)
     img = EncodeSRGB()(ToneMap()(torch.cat(images, 3)))[0]
     from skimage import io as skio

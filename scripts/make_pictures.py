@@ -78,8 +78,10 @@ def sphere_grid(env: Environment, size: int) -> None:
     view = tr.camera.look_at([0.0, 0.0, 9.0], [0.0, 0.0, 0.0])
     proj = tr.camera.perspective(32.0, 1.0, 0.1)
     with torch.no_grad():
-        out = tr.Renderer((size, size), shading="pbr", supersample=2,
-                          background=(0.02, 0.02, 0.03))(scene, view, proj, None, env)
+        out = tr.Renderer((size, size),
+                          shading="pbr",
+                          background=(0.02, 0.02, 0.03),
+                          raster=tr.RasterSettings(supersample=2))(scene, view, proj, None, env)
     image = out.image[0] * out.alpha[0] + (1 - out.alpha[0]) * 0.02
     skio.imsave(OUT / "pbr_sphere_grid.png", _display(image), check_contrast=False)
 
@@ -108,13 +110,16 @@ def main() -> None:
         rscene = tr.RenderScene.from_mesh(mesh, face_material, materials)
         cam = CameraConfig(orbit=OrbitConfig(azimuth_deg=azimuth, elevation_deg=12))
         view, proj = build_camera(cam, mesh.positions, res)
-        renderer = tr.Renderer(res, shading="pbr", supersample=2)
+        renderer = tr.Renderer(res, shading="pbr", raster=tr.RasterSettings(supersample=2))
         with torch.no_grad():
             lit = renderer(rscene, view, proj, None, env,
                            {"albedo", "normal", "roughness", "metallic", "ao", "depth", "mask"})
             skio.imsave(OUT / f"pbr_{name}_env.png", _display(lit.image[0]), check_contrast=False)
             # move the lights with the camera framing: scale by the scene's size
-            spot = tr.Renderer(res, shading="pbr", supersample=2, background=(0.02, 0.02, 0.03))
+            spot = tr.Renderer(res,
+                               shading="pbr",
+                               background=(0.02, 0.02, 0.03),
+                               raster=tr.RasterSettings(supersample=2))
             lit2 = spot(rscene, view, proj, lights)
             skio.imsave(OUT / f"pbr_{name}_lights.png", _display(lit2.image[0]),
                         check_contrast=False)

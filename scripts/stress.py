@@ -640,12 +640,15 @@ def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
     edge = _pick(gen, (2, 3)) if _chance(gen, 0.3) and supersample == 1 and all(
         x is None for x in (ssao, ssr, fog, dissolve)) and all(
         m.alpha_mode == "OPAQUE" for m in materials) else 1
+    raster = tr.RasterSettings(supersample=supersample, edge_supersample=edge,
+                               cull_backfaces=_chance(gen, 0.3))
+    textures = tr.TextureSettings(
+        filter=_pick(gen, ("trilinear", "bilinear", "nearest", "anisotropic")))
+    multiscatter = _chance(gen, 0.8)
     renderer = tr.Renderer(
-        res, shading=shading, supersample=supersample, edge_supersample=edge,
-        cull_backfaces=_chance(gen, 0.3),
-        texture_filter=_pick(gen, ("trilinear", "bilinear", "nearest", "anisotropic")),
-        ssao=ssao, ssr=ssr, fog=fog, dissolve=dissolve, multiscatter=_chance(gen, 0.8),
-        environment_background=_chance(gen, 0.5))
+        res, shading=tr.ShadingSettings(shading, multiscatter=multiscatter or shading != "pbr"),
+        raster=raster, textures=textures, ssao=ssao, ssr=ssr, fog=fog, dissolve=dissolve,
+        background=tr.BackgroundSettings(environment=_chance(gen, 0.5)))
     # every channel of one frame (the flow channels need another: the motion kind draws them)
     out = renderer(scene, view, proj, lights, env, channels=ONE_FRAME_CHANNELS)
     c["covered"] += int((out.alpha > 0).sum())
@@ -703,12 +706,13 @@ def scene_half(gen: torch.Generator, c: Counter) -> None:
     settings = tr.shading.shadows.ShadowSettings(
         map_size=_pick(gen, (32, 128)), filter=_pick(gen, tr.shading.shadows.FILTERS))
     antialias = _chance(gen, 0.5)
-    renderer = tr.Renderer(res, antialias=antialias, shadow_settings=settings,
-                           edge_supersample=1 if antialias else _pick(gen, (1, 2, 3)),
-                           texture_filter=_pick(gen, ("trilinear", "bilinear", "nearest",
-                                                      "anisotropic")),
-                           max_batch=_pick(gen, (None, 1)))  # chunked batches too
-    if renderer.max_batch is not None:  # two views, rendered one at a time
+    raster = tr.RasterSettings(antialias=antialias,
+                               edge_supersample=1 if antialias else _pick(gen, (1, 2, 3)))
+    textures = tr.TextureSettings(
+        filter=_pick(gen, ("trilinear", "bilinear", "nearest", "anisotropic")))
+    raster = dataclasses.replace(raster, max_batch=_pick(gen, (None, 1)))  # chunked batches too
+    renderer = tr.Renderer(res, shadows=settings, raster=raster, textures=textures)
+    if renderer.raster_settings.max_batch is not None:  # two views, rendered one at a time
         view = torch.cat([view, view])
     out = renderer(scene, view, proj, lights)
     c["covered"] += int((out.alpha > 0).sum())
@@ -746,8 +750,8 @@ def scene_labels(gen: torch.Generator, scene: tr.RenderScene, c: Counter) -> Non
         scene.face_ranges = torch.tensor([[0, scene.faces.shape[0]],
                                           [n_plane, scene.faces.shape[0]]])
     view, proj, res = _random_views(gen, b, dtype)
-    renderer = tr.Renderer(res, shading="unlit", supersample=_randint(gen, 1, 3),
-                           cull_backfaces=_chance(gen, 0.3))
+    renderer = tr.Renderer(res, shading="unlit", raster=tr.RasterSettings(
+        supersample=_randint(gen, 1, 3), cull_backfaces=_chance(gen, 0.3)))
     out = renderer(scene, view, proj, channels=LABELS)
     gb = out.gbuffer
     c["covered"] += int((gb["instance"] > 0).sum())
@@ -765,7 +769,7 @@ def scene_labels(gen: torch.Generator, scene: tr.RenderScene, c: Counter) -> Non
     errors += int(((nocs != 0).any(1, keepdim=True) & empty).sum())
     dist, depth = gb["distance"].float(), gb["depth"].float()
     errors += int(((dist != 0) & empty).sum())
-    if renderer.supersample == 1:  # (depth is box-filtered when supersampled)
+    if renderer.raster_settings.supersample == 1:  # (depth is box-filtered when supersampled)
         errors += int((dist < depth * (1 - tol) - tol)[~empty].sum())
     c["label_errors"] += errors
     loss = sum((v.float() * torch.randn(v.shape, generator=gen)).sum()
@@ -818,8 +822,8 @@ def scene_motion(gen: torch.Generator, scene: tr.RenderScene, c: Counter) -> Non
     split = 25  # _stage's plane vertices come first
     nxt = _other_frame(gen, positions, split, b, proj)
     prev = _other_frame(gen, positions, split, b, proj)
-    renderer = tr.Renderer(res, shading="unlit", supersample=_randint(gen, 1, 3),
-                           cull_backfaces=_chance(gen, 0.3))
+    renderer = tr.Renderer(res, shading="unlit", raster=tr.RasterSettings(
+        supersample=_randint(gen, 1, 3), cull_backfaces=_chance(gen, 0.3)))
     out = renderer(scene, view, proj, channels=MOTION, next_frame=nxt, previous_frame=prev)
     gb = out.gbuffer
     c["covered"] += int((gb["mask"] > 0).sum())
@@ -831,7 +835,7 @@ def scene_motion(gen: torch.Generator, scene: tr.RenderScene, c: Counter) -> Non
         errors += int(((v != 0) & (v != 1)).sum() + ((v != 0) & empty).sum())
     for name in ("flow_forward", "flow_backward", "motion"):
         errors += int(((gb[name] != 0) & empty).sum())
-    if renderer.supersample == 1 and dtype in (torch.float32, torch.float64):
+    if renderer.raster_settings.supersample == 1 and dtype in (torch.float32, torch.float64):
         scale = torch.tensor([2 / res[1], -2 / res[0]], dtype=dtype).view(1, 2, 1, 1)
         want = -gb["flow_backward"] * scale
         errors += int(((gb["motion"] - want).abs() > 1e-4 * (1 + want.abs())).sum())
@@ -902,7 +906,8 @@ def scene_far(gen: torch.Generator, c: Counter) -> None:
     move[:3, 3] = -offset
     res = (_randint(gen, 8, 40), _randint(gen, 8, 40))
     proj = tr.camera.perspective(_rand(gen, 20.0, 90.0), res[1] / res[0], 0.01)
-    kw = dict(shading="pbr", supersample=_pick(gen, (1, 2)), antialias=_chance(gen, 0.3),
+    kw = dict(shading="pbr", raster=tr.RasterSettings(supersample=_pick(gen, (1, 2)),
+                                                      antialias=_chance(gen, 0.3)),
               dissolve=dissolve)
     outs = []
     seed = int(torch.randint(0, 2**31, (1,), generator=gen))  # the same lights twice
@@ -935,7 +940,7 @@ def scene_far(gen: torch.Generator, c: Counter) -> None:
     fid, fid0 = far.gbuffer["face_id"], near.gbuffer["face_id"]
     covered = int((fid0 >= 0).sum())
     c["far_errors"] += max(0, int((fid != fid0).sum()) - 3 - covered // 100)
-    if kw["supersample"] > 1:
+    if kw["raster"].supersample > 1:
         return  # box-filtered positions: the covered fraction is not known per pixel
     same = (fid == fid0) & (fid >= 0)
     mask = (fid >= 0).to(torch.float64)

@@ -229,7 +229,9 @@ PROJ = tr.camera.perspective(50.0, 1.0, 0.05)
 def test_renderer_runs_the_filter_and_plans_it() -> None:
     tex = checkerboard(64, 8)[0].expand(3, -1, -1).clone()
     scene = _ground(tex)
-    r = tr.Renderer(24, shading="unlit", texture_filter="anisotropic", max_anisotropy=8)
+    r = tr.Renderer(24,
+                    shading="unlit",
+                    textures=tr.TextureSettings(filter="anisotropic", max_anisotropy=8))
     out = r(scene, EYE_VIEW, PROJ)
     assert out.plan.anisotropy == 8 and out.plan.derivatives
     assert "anisotropic texture filtering 8x" in out.plan
@@ -248,7 +250,7 @@ def test_renderer_runs_the_filter_and_plans_it() -> None:
 
 
 def test_renderer_skips_it_without_textures_and_stays_finite() -> None:
-    r = tr.Renderer(16, shading="unlit", texture_filter="anisotropic")
+    r = tr.Renderer(16, shading="unlit", textures=tr.TextureSettings(filter="anisotropic"))
     plain = tr.RenderScene(torch.tensor([[-1.0, 0, -3], [1, 0, -3], [0, 1, -3]]),
                            torch.tensor([[0, 1, 2]]))
     out = r(plain, EYE_VIEW, PROJ)
@@ -274,9 +276,11 @@ def test_renderer_skips_it_without_textures_and_stays_finite() -> None:
 def test_bad_options_name_the_argument() -> None:
     for bad in (0, 65, 2.0, True):
         with pytest.raises(ValueError, match="max_anisotropy"):
-            tr.Renderer(8, texture_filter="anisotropic", max_anisotropy=bad)
-    with pytest.raises(ValueError, match="texture_filter"):
-        tr.Renderer(8, texture_filter="ewa")
+            tr.Renderer(8, textures=tr.TextureSettings(filter="anisotropic", max_anisotropy=bad))
+    with pytest.raises(ValueError, match=r"^TextureSettings.filter: expected one of"):
+        tr.Renderer(8, textures=tr.TextureSettings(filter="ewa"))
+    with pytest.raises(ValueError, match=r"^TextureSettings.max_anisotropy: used by filter="):
+        tr.TextureSettings(max_anisotropy=4)
     mt = MipTexture(torch.rand(1, 1, 8, 8))
     uv = torch.rand(1, 2, 2, 2)
     with pytest.raises(ValueError, match="duv_dx, duv_dy"):
@@ -298,7 +302,7 @@ def test_yaml_option(tmp_path) -> None:  # noqa: ANN001
     from torchraster.config import build_renderer
 
     r = build_renderer(cfg, with_environment=False)
-    assert r.texture_filter == "anisotropic" and r.max_anisotropy == 4
+    assert r.texture_settings == tr.TextureSettings(filter="anisotropic", max_anisotropy=4)
     with pytest.raises(tr.ConfigError, match="max_anisotropy"):
         tr.parse_config(base % "max_anisotropy: 4", "b.yaml", base_dir=tmp_path)
     with pytest.raises(tr.ConfigError, match="max_anisotropy"):

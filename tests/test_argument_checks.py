@@ -5,6 +5,7 @@ Python and YAML take the shadow limits from one table (``shadows.SHADOW_BOUNDS``
 from __future__ import annotations
 
 import math
+import re
 
 import pydantic
 import pytest
@@ -43,20 +44,53 @@ def test_ssr_thickness_finite(value: object) -> None:
     assert SSR(max_distance=math.inf).max_distance == math.inf  # inf = unbounded, documented
 
 
-@pytest.mark.parametrize("name", ["antialias", "cull_backfaces", "environment_background",
-                                  "shadows", "multiscatter"])
+FLAGS = [(tr.RasterSettings, "antialias"), (tr.RasterSettings, "cull_backfaces"),
+         (tr.BackgroundSettings, "environment"), (tr.ShadingSettings, "multiscatter")]
+
+
+@pytest.mark.parametrize("group,name", FLAGS, ids=lambda x: getattr(x, "__name__", x))
 @pytest.mark.parametrize("value", NOT_BOOLS, ids=repr)
-def test_renderer_flags_are_bools(name: str, value: object) -> None:
-    with pytest.raises(TypeError, match=rf"^{name}: expected True or False"):
-        tr.Renderer(8, **{name: value})
-    assert getattr(tr.Renderer(8, **{name: True}), name) is True
+def test_renderer_flags_are_bools(group: type, name: str, value: object) -> None:
+    with pytest.raises(TypeError, match=rf"^{group.__name__}.{name}: expected True or False"):
+        group(**{name: value})
+    assert getattr(group(**{name: True}), name) is True
 
 
-@pytest.mark.parametrize("name,value", [("supersample", True), ("supersample", 2.0),
-                                        ("alpha_layers", True), ("mip_cache_bytes", True),
-                                        ("mip_cache_bytes", -1)])
-def test_renderer_counts_are_ints(name: str, value: object) -> None:
-    with pytest.raises(ValueError, match=rf"^{name}: expected an int"):
+@pytest.mark.parametrize("value", NOT_BOOLS, ids=repr)
+def test_renderer_shadows_is_a_flag_or_settings(value: object) -> None:
+    with pytest.raises(TypeError, match=r"^shadows: expected True, False or a ShadowSettings"):
+        tr.Renderer(8, shadows=value)
+    assert tr.Renderer(8, shadows=False).shadows is False
+    settings = tr.ShadowSettings(map_size=64)
+    assert tr.Renderer(8, shadows=settings).shadow_settings is settings
+
+
+@pytest.mark.parametrize("group,name,value", [
+    (tr.RasterSettings, "supersample", True), (tr.RasterSettings, "supersample", 2.0),
+    (tr.RasterSettings, "supersample", 9), (tr.RasterSettings, "alpha_layers", True),
+    (tr.RasterSettings, "max_batch", 0), (tr.TextureSettings, "cache_bytes", True),
+    (tr.TextureSettings, "cache_bytes", -1)], ids=str)
+def test_renderer_counts_are_ints(group: type, name: str, value: object) -> None:
+    with pytest.raises(ValueError, match=rf"^{group.__name__}.{name}: expected an int"):
+        group(**{name: value})
+
+
+@pytest.mark.parametrize("name,home", [("supersample", "RasterSettings(supersample=...)"),
+                                       ("texture_filter", "TextureSettings(filter=...)"),
+                                       ("background_image", "BackgroundSettings(image=...)"),
+                                       ("shading_options", "ShadingSettings(options=...)"),
+                                       ("shadow_settings", "shadows=ShadowSettings(...)")])
+def test_renderer_former_arguments_say_where_they_went(name: str, home: str) -> None:
+    with pytest.raises(TypeError, match=rf"^Renderer\({name}=...\): .*{re.escape(home)}"):
+        tr.Renderer(8, **{name: 1})
+    with pytest.raises(TypeError, match=r"^Renderer: unexpected keyword argument 'colour'"):
+        tr.Renderer(8, colour=1)
+
+
+@pytest.mark.parametrize("name,value", [("raster", {"supersample": 2}), ("textures", "nearest"),
+                                        ("shading", 3), ("background", "white")])
+def test_renderer_groups_are_typed(name: str, value: object) -> None:
+    with pytest.raises(TypeError, match=rf"^{name}: expected a"):
         tr.Renderer(8, **{name: value})
 
 

@@ -113,8 +113,10 @@ def _quad(alpha: float = 1.0, mode: str = "OPAQUE") -> tr.RenderScene:
 
 def test_composited_only_where_alpha_is_below_one():
     bg = torch.rand(3, 10, 30)
-    renderer = tr.Renderer(24, shading="unlit", background_image=bg, background_fit="contain",
-                           background=(0.0, 0.0, 1.0))
+    renderer = tr.Renderer(24,
+                           shading="unlit",
+                           background=tr.BackgroundSettings(color=(0.0, 0.0, 1.0), image=bg,
+                                                            fit="contain"))
     out = renderer(_quad(), VIEW, PROJ)
     assert out.plan.background == "image contain" and "background image contain" in out.plan
     fitted = fit_background(bg, 24, "contain", (0.0, 0.0, 1.0))
@@ -134,7 +136,10 @@ def test_composited_only_where_alpha_is_below_one():
 def test_image_beats_environment_and_supersampling_fits_the_big_frame():
     bg = torch.rand(3, 9, 9)
     env = tr.Environment(torch.full((3, 8, 16), 3.0))
-    out = tr.Renderer(12, shading="unlit", background_image=bg, supersample=2)(
+    out = tr.Renderer(12,
+                      shading="unlit",
+                      raster=tr.RasterSettings(supersample=2),
+                      background=tr.BackgroundSettings(image=bg))(
         _quad(), VIEW, PROJ, environment=env)
     assert out.plan.background == "image cover"
     want = torch.nn.functional.avg_pool2d(fit_background(bg, 24, "cover"), 2)
@@ -144,12 +149,12 @@ def test_image_beats_environment_and_supersampling_fits_the_big_frame():
 
 
 def test_errors_name_the_argument():
-    with pytest.raises(ValueError, match="background_fit: expected one of"):
-        tr.Renderer(8, background_image=torch.rand(3, 4, 4), background_fit="fill")
-    with pytest.raises(ValueError, match="background_image"):
-        tr.Renderer(8, background_image=torch.rand(4, 4, 4))
-    with pytest.raises(ValueError, match="background_image"):
-        tr.Renderer(8, background_image=torch.full((3, 4, 4), float("nan")))
+    with pytest.raises(ValueError, match=r"^BackgroundSettings.fit: expected one of"):
+        tr.Renderer(8, background=tr.BackgroundSettings(image=torch.rand(3, 4, 4), fit="fill"))
+    with pytest.raises(ValueError, match="BackgroundSettings.image"):
+        tr.Renderer(8, background=tr.BackgroundSettings(image=torch.rand(4, 4, 4)))
+    with pytest.raises(ValueError, match="BackgroundSettings.image"):
+        tr.Renderer(8, background=tr.BackgroundSettings(image=torch.full((3, 4, 4), float("nan"))))
     with pytest.raises(ValueError, match="fit: expected one of"):
         fit_background(torch.rand(3, 4, 4), 8, "zoom")
     with pytest.raises(FileNotFoundError, match="nope.png"):

@@ -46,10 +46,10 @@ def test_every_pixel_flagged_equals_supersample(k, monkeypatch):
     monkeypatch.setattr(edge_aa, "CONTRAST_THRESHOLD", -1.0)
     kw = {"background": (0.2, 0.3, 0.4)}
     with torch.no_grad():
-        ref = tr.Renderer(24, supersample=k, **kw)(scene, view, proj, lights,
-                                                   channels={"alpha"})
-        out = tr.Renderer(24, edge_supersample=k, **kw)(scene, view, proj, lights,
-                                                        channels={"alpha"})
+        ref = tr.Renderer(24, **kw, raster=tr.RasterSettings(supersample=k))(
+            scene, view, proj, lights, channels={"alpha"})
+        out = tr.Renderer(24, **kw, raster=tr.RasterSettings(edge_supersample=k))(
+            scene, view, proj, lights, channels={"alpha"})
     assert out.plan.edge_pixels == 24 * 24
     torch.testing.assert_close(out.image, ref.image, atol=2e-6, rtol=1e-5)
     torch.testing.assert_close(out.alpha, ref.alpha, atol=1e-6, rtol=0)
@@ -66,10 +66,13 @@ def test_default_thresholds_approach_the_reference():
     lights = _lights()
     res = 48
     with torch.no_grad():
-        ref = tr.Renderer(res, supersample=8)(scene, view, proj, lights).image
+        ref = tr.Renderer(res, raster=tr.RasterSettings(supersample=8))(
+            scene, view, proj, lights).image
         one = tr.Renderer(res)(scene, view, proj, lights).image
-        out = tr.Renderer(res, edge_supersample=4)(scene, view, proj, lights)
-        ss4 = tr.Renderer(res, supersample=4)(scene, view, proj, lights).image
+        out = tr.Renderer(res, raster=tr.RasterSettings(edge_supersample=4))(
+            scene, view, proj, lights)
+        ss4 = tr.Renderer(res, raster=tr.RasterSettings(supersample=4))(
+            scene, view, proj, lights).image
     e1, ee, es = _error(one, ref), _error(out.image, ref), _error(ss4, ref)
     assert ee < 0.3 * e1, (e1, ee)
     assert ee < 1.5 * es, (es, ee)  # close to supersampling at the same factor
@@ -82,7 +85,8 @@ def test_labels_and_gbuffer_are_the_1x_frame():
     channels = {"instance", "face_id", "albedo", "normal", "depth", "mask"}
     with torch.no_grad():
         one = tr.Renderer(32)(scene, view, proj, lights, channels=channels)
-        out = tr.Renderer(32, edge_supersample=3)(scene, view, proj, lights, channels=channels)
+        out = tr.Renderer(32, raster=tr.RasterSettings(edge_supersample=3))(
+            scene, view, proj, lights, channels=channels)
     assert set(out.gbuffer) == channels
     for ch in channels:
         assert torch.equal(out.gbuffer[ch], one.gbuffer[ch]), ch
@@ -94,7 +98,7 @@ def test_labels_and_gbuffer_are_the_1x_frame():
 
 def test_plan_reports_the_pass():
     scene, view, proj = _scene()
-    r = tr.Renderer(16, edge_supersample=2)
+    r = tr.Renderer(16, raster=tr.RasterSettings(edge_supersample=2))
     assert "edge supersample 2x" in r.plan(scene, _lights())
     with torch.no_grad():
         out = r(scene, view, proj, _lights())
@@ -108,8 +112,10 @@ def test_batch_chunks_sum_the_edge_pixels():
     views = torch.cat([view.view(1, 4, 4), tr.camera.look_at([-1.0, 2.0, 3.0], [0.0, 0.3, 0.0])])
     lights = _lights(("directional",))
     with torch.no_grad():
-        whole = tr.Renderer(16, edge_supersample=2)(scene, views, proj, lights)
-        parts = tr.Renderer(16, edge_supersample=2, max_batch=1)(scene, views, proj, lights)
+        whole = tr.Renderer(16, raster=tr.RasterSettings(edge_supersample=2))(
+            scene, views, proj, lights)
+        parts = tr.Renderer(16, raster=tr.RasterSettings(edge_supersample=2, max_batch=1))(
+            scene, views, proj, lights)
     assert parts.plan.edge_pixels == whole.plan.edge_pixels
     torch.testing.assert_close(parts.image, whole.image)
 
@@ -121,8 +127,11 @@ def test_background_image_and_batch():
     views = torch.cat([view.view(1, 4, 4), tr.camera.look_at([0.0, 1.0, 2.0], [0.0, 0.3, 0.0])])
     image = torch.rand(3, 10, 10, generator=torch.Generator().manual_seed(1))
     with torch.no_grad():
-        one = tr.Renderer(16, background_image=image)(scene, views, proj, _lights())
-        out = tr.Renderer(16, background_image=image, edge_supersample=2)(scene, views, proj,
+        one = tr.Renderer(16, background=tr.BackgroundSettings(image=image))(
+            scene, views, proj, _lights())
+        out = tr.Renderer(16,
+                          raster=tr.RasterSettings(edge_supersample=2),
+                          background=tr.BackgroundSettings(image=image))(scene, views, proj,
                                                                           _lights())
     assert out.image.shape == (2, 3, 16, 16) and bool(torch.isfinite(out.image).all())
     changed = (out.image != one.image).any(1)
@@ -133,20 +142,20 @@ def test_background_image_and_batch():
 @pytest.mark.parametrize("bad", [0, True, 1.5, "x", 9, None])
 def test_bad_values_name_the_option(bad):
     with pytest.raises(ValueError, match="edge_supersample"):
-        tr.Renderer(8, edge_supersample=bad)
+        tr.Renderer(8, raster=tr.RasterSettings(edge_supersample=bad))
 
 
 def test_unsupported_combinations_say_so():
     with pytest.raises(ValueError, match="edge_supersample.*supersample"):
-        tr.Renderer(8, edge_supersample=2, supersample=2)
+        tr.Renderer(8, raster=tr.RasterSettings(edge_supersample=2, supersample=2))
     with pytest.raises(ValueError, match="edge_supersample.*antialias"):
-        tr.Renderer(8, edge_supersample=2, antialias=True)
+        tr.Renderer(8, raster=tr.RasterSettings(edge_supersample=2, antialias=True))
     with pytest.raises(NotImplementedError, match="edge_supersample.*ssao"):
-        tr.Renderer(8, edge_supersample=2, ssao=tr.post.SSAO())
+        tr.Renderer(8, ssao=tr.post.SSAO(), raster=tr.RasterSettings(edge_supersample=2))
     scene, view, proj = _scene()
     scene.materials = [tr.Material(alpha_mode="MASK")]
     with pytest.raises(NotImplementedError, match="edge_supersample.*MASK"):
-        tr.Renderer(8, edge_supersample=2).plan(scene, _lights())
+        tr.Renderer(8, raster=tr.RasterSettings(edge_supersample=2)).plan(scene, _lights())
 
 
 def test_contrast_and_geometric_edges():
@@ -174,7 +183,7 @@ def test_gradients_through_the_packed_subsamples():
     scene, view, proj = _scene(torch.float64, subdivisions=1)
     weights = torch.rand(1, 3, 12, 12, dtype=torch.float64,
                          generator=torch.Generator().manual_seed(0))
-    renderer = tr.Renderer(12, edge_supersample=2, shadows=False)
+    renderer = tr.Renderer(12, shadows=False, raster=tr.RasterSettings(edge_supersample=2))
 
     def f(direction, color):
         sun = tr.DirectionalLights(direction=direction.view(1, 1, 3),

@@ -103,7 +103,7 @@ def test_near_origin_is_bit_identical():
     """Not applied near the origin: the automatic mode renders exactly as False."""
     pos = POS.float()
     view = _camera(torch.zeros(3)).float()
-    outs = [tr.Renderer(RES, shading="headlight", camera_relative=mode)(
+    outs = [tr.Renderer(RES, shading="headlight", raster=tr.RasterSettings(camera_relative=mode))(
         tr.RenderScene(pos, FACES), view, PROJ, channels=("position",)) for mode in (None, False)]
     assert torch.equal(outs[0].image, outs[1].image)
     assert torch.equal(outs[0].gbuffer["position"], outs[1].gbuffer["position"])
@@ -112,7 +112,7 @@ def test_near_origin_is_bit_identical():
     # a tiny object seen from afar is not "far from the origin" either
     assert relative.plan_shift(None, pos * 0.01, view[None], PROJ[None]) is None
     # forced on at the origin: the same picture up to float32 rounding
-    on = tr.Renderer(RES, shading="headlight", camera_relative=True)(
+    on = tr.Renderer(RES, shading="headlight", raster=tr.RasterSettings(camera_relative=True))(
         tr.RenderScene(pos, FACES), view, PROJ, channels=("position",))
     torch.testing.assert_close(on.image, outs[0].image, atol=1e-4, rtol=0)
     torch.testing.assert_close(on.gbuffer["position"], outs[0].gbuffer["position"],
@@ -193,7 +193,8 @@ def test_fog_height_follows_the_world():
     scene = tr.RenderScene(POS + off, FACES)
     kw = dict(shading="headlight", fog=fog)
     rel = tr.Renderer(RES, **kw)(scene, _camera(off), PROJ)
-    ref = tr.Renderer(RES, camera_relative=False, **kw)(scene, _camera(off), PROJ.double())
+    ref = tr.Renderer(RES, **kw, raster=tr.RasterSettings(camera_relative=False))(
+        scene, _camera(off), PROJ.double())
     assert ref.image.dtype == torch.float64
     torch.testing.assert_close(rel.image.double(), ref.image, atol=2e-4, rtol=0)
 
@@ -205,7 +206,10 @@ def test_dissolve_pattern_is_the_world_pattern():
     off = torch.tensor([1e5 + 12.3, 0.0, -3e5 + 7.7], dtype=torch.float64)
     scene = tr.RenderScene(POS + off, FACES)
     rel = tr.Renderer(RES, shading="headlight", dissolve=d)(scene, _camera(off), PROJ)
-    ref = tr.Renderer(RES, shading="headlight", dissolve=d, camera_relative=False)(
+    ref = tr.Renderer(RES,
+                      shading="headlight",
+                      dissolve=d,
+                      raster=tr.RasterSettings(camera_relative=False))(
         scene, _camera(off), PROJ.double())
     cut = (ref.alpha < 1) & (ref.alpha.new_ones(1) > 0)
     assert int(((rel.alpha > 0.5) != (ref.alpha > 0.5)).sum()) <= 3  # noise == threshold
@@ -238,15 +242,15 @@ def test_chunked_far_batch_matches():
                          tr.camera.look_at(EYE * 1.2 + 1e6, TARGET + 1e6)[0]])
     scene = tr.RenderScene(POS + 1e6, FACES)
     whole = tr.Renderer(RES, shading="headlight")(scene, views, PROJ, channels=("position",))
-    parts = tr.Renderer(RES, shading="headlight", max_batch=1)(scene, views, PROJ,
-                                                                channels=("position",))
+    parts = tr.Renderer(RES, shading="headlight", raster=tr.RasterSettings(max_batch=1))(
+        scene, views, PROJ, channels=("position",))
     assert torch.equal(whole.image, parts.image)
     assert torch.equal(whole.gbuffer["position"], parts.gbuffer["position"])
 
 
 def test_camera_relative_checked():
     with pytest.raises(TypeError, match="camera_relative"):
-        tr.Renderer(RES, camera_relative="yes")
+        tr.Renderer(RES, raster=tr.RasterSettings(camera_relative="yes"))
 
 
 CONFIG = """\

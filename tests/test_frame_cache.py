@@ -154,7 +154,9 @@ def test_chunked_render_with_depth_equals_whole():
     views = torch.stack([eye, eye, eye])
     chans = ["flow_backward_valid"]
     whole = tr.Renderer(resolution=(12, 12), shading="unlit")
-    chunked = tr.Renderer(resolution=(12, 12), shading="unlit", max_batch=2)
+    chunked = tr.Renderer(resolution=(12, 12),
+                          shading="unlit",
+                          raster=tr.RasterSettings(max_batch=2))
     clip = torch.cat([shifted, torch.ones(7, 1)], 1)[None].expand(3, -1, -1)
     depth = other_frame_depth(clip, scene.faces, (12, 12), eye)
     ref = whole(scene, views, eye, channels=chans, previous_frame=OtherFrame(shifted, eye, eye))

@@ -158,8 +158,10 @@ def test_supersampling_antialiases_edges():
     scene = _sphere_scene(3)
     view = camera.look_at([0.0, 0.0, 4.0], [0.0, 0.0, 0.0])
     proj = camera.perspective(40.0, 1.0, 0.1)
-    alpha1 = tr.Renderer((32, 32), shading="unlit", supersample=1)(scene, view, proj).alpha
-    alpha4 = tr.Renderer((32, 32), shading="unlit", supersample=4)(scene, view, proj).alpha
+    alpha1 = tr.Renderer((32, 32), shading="unlit", raster=tr.RasterSettings(supersample=1))(
+        scene, view, proj).alpha
+    alpha4 = tr.Renderer((32, 32), shading="unlit", raster=tr.RasterSettings(supersample=4))(
+        scene, view, proj).alpha
     partial = ((alpha4 > 0) & (alpha4 < 1)).sum()
     assert ((alpha1 > 0) & (alpha1 < 1)).sum() == 0 and partial > 20
     # coverage converges to the analytic disc area: r_px = f * 1/sqrt(d^2 - 1)

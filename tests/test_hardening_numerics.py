@@ -124,8 +124,9 @@ def _render(dtype, filt, res=32, eye=(3.0, 3.0, 3.0), direction=(-0.3, -1.0, -0.
     lights, d = _sun(dtype, direction)
     view = tr.camera.look_at(torch.tensor(eye), torch.zeros(3)).to(dtype)
     proj = tr.camera.perspective(45.0, 1.0, 0.1, 100.0).to(dtype)
-    r = tr.Renderer((res, res), antialias=True,
-                    shadow_settings=ShadowSettings(map_size=64, filter=filt))
+    r = tr.Renderer((res, res),
+                    shadows=ShadowSettings(map_size=64, filter=filt),
+                    raster=tr.RasterSettings(antialias=True))
     img = r(scene, view, proj, lights).image
     weights = torch.linspace(0, 1, img.numel()).view_as(img)
     (img.float() * weights).sum().backward()
@@ -282,7 +283,7 @@ def test_hdr_with_maximum_texels_is_clamped_not_nan(tmp_path, caplog):
     scene, _, _ = _stage(torch.float32)
     lights, _ = _sun(torch.float32)
     view = tr.camera.look_at(torch.tensor([3.0, 3.0, 3.0]), torch.zeros(3))
-    out = tr.Renderer(16, environment_background=True)(
+    out = tr.Renderer(16, background=tr.BackgroundSettings(environment=True))(
         scene, view, tr.camera.perspective(45.0, 1.0, 0.1), lights, env)
     assert torch.isfinite(out.image).all()
 

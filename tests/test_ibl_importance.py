@@ -176,7 +176,8 @@ def test_renderer_plans_importance_and_energy() -> None:
     assert not any(s.startswith("ibl specular") for s in plan)
     plan = r.plan(mesh, environment=tr.Environment(env_t, specular="importance"))
     assert "ibl specular importance" in plan and plan.ibl_specular == "importance"
-    assert "energy compensation" not in tr.Renderer(16, multiscatter=False).plan(
+    assert "energy compensation" not in tr.Renderer(16,
+                                                    shading=tr.ShadingSettings(multiscatter=False)).plan(
         mesh, environment=tr.Environment(env_t))
     assert "energy compensation" not in tr.Renderer(16, shading="unlit").plan(mesh)
     out = r(mesh, view, proj, environment=tr.Environment(env_t, specular="importance"))

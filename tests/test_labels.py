@@ -80,7 +80,10 @@ def _reference_face_id(pos: np.ndarray, faces: np.ndarray, h: int, w: int) -> np
 
 def _render(scene, h: int, w: int, channels, supersample: int = 1, **kwargs):
     view, proj = _camera(h, w)
-    renderer = tr.Renderer((h, w), shading="unlit", supersample=supersample, **kwargs)
+    renderer = tr.Renderer((h, w),
+                           shading="unlit",
+                           **kwargs,
+                           raster=tr.RasterSettings(supersample=supersample))
     return renderer(scene, view, proj, channels=channels)
 
 
@@ -346,7 +349,7 @@ def test_supersampled_labels_are_one_subsample_of_the_full_frame(s):
     meshes, mats, cats = _objects()
     scene = tr.RenderScene.from_objects(meshes, torch.tensor(mats), cats)
     view, proj = _camera(h, w)
-    small = tr.Renderer((h, w), shading="unlit", supersample=s)(
+    small = tr.Renderer((h, w), shading="unlit", raster=tr.RasterSettings(supersample=s))(
         scene, view, proj, channels=ALL + ["albedo"]).gbuffer
     full = tr.Renderer((s * h, s * w), shading="unlit")(
         scene, view, proj, channels=ALL + ["albedo"]).gbuffer

@@ -17,7 +17,7 @@ LAYERS: list[set[str]] = [
     {"gbuffer", "scene", "labels", "motion", "testing"},
     {"shading"},
     {"post"},
-    {"renderer", "transparency", "background", "dissolve", "relative", "edge_aa"},
+    {"renderer", "settings", "transparency", "background", "dissolve", "relative", "edge_aa"},
     {"config", "pipeline", "manifest", "distributed", "data", "cli", "__main__", "__init__",
      "export"},
 ]

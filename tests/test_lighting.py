@@ -301,12 +301,15 @@ def test_ibl_hook() -> None:
     albedo, m = torch.full_like(n, 0.5), torch.zeros(1, 1, 8, 8, dtype=F64)
     seen = {}
 
-    def ibl(nn, vv, a, mm, rr):
+    def ibl(s):
         seen["unit"] = bool(
-            ((nn.norm(dim=1) - 1).abs()[mask[:, 0]] < 1e-12).all()
-            and ((vv.norm(dim=1) - 1).abs() < 1e-12).all()
+            ((s.n.norm(dim=1) - 1).abs()[mask[:, 0]] < 1e-12).all()
+            and ((s.v.norm(dim=1) - 1).abs() < 1e-12).all()
         )
-        return a * 2.0
+        seen["by name"] = torch.equal(s.roughness, (m + 0.5) * mask) and torch.equal(
+            s.metallic, m) and torch.equal(s.f0, torch.full_like(n, 0.04))
+        torch.testing.assert_close(s.n_dot_v, (s.n * s.v).sum(1, keepdim=True))
+        return s.albedo * 2.0
 
     ao = torch.full_like(m, 0.25)
     out = shade(
@@ -317,7 +320,7 @@ def test_ibl_hook() -> None:
         lights=Lights(),
         ibl=ibl,
     )
-    assert seen["unit"]
+    assert seen["unit"] and seen["by name"]
     torch.testing.assert_close(out, albedo * 2.0 * 0.25 * mask)
     with pytest.raises(ValueError, match="ibl"):
         shade(

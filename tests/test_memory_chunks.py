@@ -42,8 +42,9 @@ def _setup(per_item_positions: bool = True):
     return mesh, scene, pos, view, proj, lights
 
 
-def _render(max_batch, scene, pos, view, proj, lights, channels=(), **kw):
-    renderer = tr.Renderer(RES, max_batch=max_batch, **kw)
+def _render(max_batch, scene, pos, view, proj, lights, channels=(), alpha_layers=4, **kw):
+    raster = tr.RasterSettings(max_batch=max_batch, alpha_layers=alpha_layers)
+    renderer = tr.Renderer(RES, **kw, raster=raster)
     sc = tr.RenderScene(**{**vars(scene), "positions": pos})
     return renderer(sc, view, proj, lights, channels=channels)
 
@@ -91,7 +92,8 @@ def test_chunked_shared_inputs_and_effects():
                                             color=torch.ones(1, 1, 3),
                                             intensity=torch.tensor([[20.0]])))
     bg = torch.rand(B, 3, 8, 8, generator=torch.Generator().manual_seed(1))
-    kw = {"background_image": bg, "dissolve": Dissolve(threshold=torch.linspace(0.1, 0.6, B)),
+    kw = {"background": tr.BackgroundSettings(image=bg),
+          "dissolve": Dissolve(threshold=torch.linspace(0.1, 0.6, B)),
           "alpha_layers": 2}
     outs = []
     for max_batch in (None, 3):
@@ -108,7 +110,7 @@ def test_chunked_shared_inputs_and_effects():
     small = dataclasses.replace(mesh, positions=mesh.positions * 0.6)
     meshes = [mesh, small, mesh]  # face_ranges (3, 2)
     r_all = tr.Renderer(RES, shading="headlight")
-    r_chunk = tr.Renderer(RES, shading="headlight", max_batch=1)
+    r_chunk = tr.Renderer(RES, shading="headlight", raster=tr.RasterSettings(max_batch=1))
     a = r_all(meshes, view[:3], proj)
     b = r_chunk(meshes, view[:3], proj)
     assert b.plan.chunks == (1, 1, 1)
@@ -117,15 +119,15 @@ def test_chunked_shared_inputs_and_effects():
 
 def test_max_batch_errors():
     with pytest.raises(ValueError, match="max_batch"):
-        tr.Renderer(16, max_batch=0)
+        tr.Renderer(16, raster=tr.RasterSettings(max_batch=0))
     with pytest.raises(ValueError, match="max_batch"):
-        tr.Renderer(16, max_batch=True)
+        tr.Renderer(16, raster=tr.RasterSettings(max_batch=True))
     mesh = tr.load_spot(max_texture_size=16)
     env = tr.Environment(torch.rand(2, 3, 8, 16), intensity=torch.tensor([1.0, 2.0]))
     view = tr.camera.orbit(torch.tensor([0.0, 90.0]), 15.0, 2.4)
     proj = tr.camera.perspective(45.0, 1.0, 0.1)
     with pytest.raises(NotImplementedError, match="max_batch"):
-        tr.Renderer(16, max_batch=1)(mesh, view, proj, environment=env)
+        tr.Renderer(16, raster=tr.RasterSettings(max_batch=1))(mesh, view, proj, environment=env)
     # within max_batch nothing is split: the per-item environment works
-    out = tr.Renderer(16, max_batch=2)(mesh, view, proj, environment=env)
+    out = tr.Renderer(16, raster=tr.RasterSettings(max_batch=2))(mesh, view, proj, environment=env)
     assert out.plan.chunks == () and math.isfinite(float(out.image.sum()))

@@ -287,7 +287,7 @@ def test_renderer_channels_match_functions(s):
     """Renderer channels = the functions on the same fragments; with supersampling s, the
     sub-sample (s - 1) // 2 of each block, flow divided by s (output pixels)."""
     mesh, view, proj, nxt, prev = _spot_frames()
-    out = tr.Renderer((H, W), shading="unlit", supersample=s)(
+    out = tr.Renderer((H, W), shading="unlit", raster=tr.RasterSettings(supersample=s))(
         mesh, view, proj, channels=ALL, next_frame=nxt, previous_frame=prev)
     assert {"flow forward", "flow forward valid", "flow backward", "flow backward valid",
             "motion vectors"} <= set(out.plan.steps)

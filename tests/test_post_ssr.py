@@ -398,7 +398,9 @@ def test_renderer_replaces_the_ibl_specular_where_rays_hit() -> None:
     """Under a uniform sky of radiance c, a mirror floor shows W c where its rays miss and
     W L_quad where they hit: there the sky must be gone entirely (no double counting)."""
     scene, view, proj = _glow_scene()
-    renderer = tr.Renderer(48, ssr=SSR(edge_fade=0.0), environment_background=False)
+    renderer = tr.Renderer(48,
+                           ssr=SSR(edge_fade=0.0),
+                           background=tr.BackgroundSettings(environment=False))
     outs = [renderer(scene, view, proj, environment=_uniform_env(c)) for c in (0.2, 1.0)]
     assert "ssr" in outs[0].plan
     ref_scene, ref_view, _ = _quad_scene(mirror_view=True)
@@ -449,8 +451,8 @@ def test_renderer_stress_grazing_below_and_inside(eye: list[float]) -> None:
     view = look_at(eye, [0.0, 0.35, -1.0])
     env = _uniform_env(0.7)
     lights = tr.Lights(ambient=tr.sh_from_color(torch.tensor([[0.2, 0.2, 0.2]])))
-    out = tr.Renderer(24, ssr=SSR(), supersample=2)(scene, view, proj, lights=lights,
-                                                     environment=env)
+    out = tr.Renderer(24, ssr=SSR(), raster=tr.RasterSettings(supersample=2))(
+        scene, view, proj, lights=lights, environment=env)
     assert "ssr" in out.plan and bool(torch.isfinite(out.image).all())
     out.image.square().sum().backward()
     assert bool(torch.isfinite(positions.grad).all())

@@ -56,8 +56,10 @@ def test_pbr_without_light_says_so_and_plans_unlit():
 
 
 @pytest.mark.parametrize("background, match", [
-    ((0.1, 0.2), "background"), ((0.0, float("nan"), 0.0), "background"),
-    ((-1.0, 0.0, 0.0), "background"), ("red", "background")])
+    ((0.1, 0.2), "^BackgroundSettings.color: expected 3"),
+    ((0.0, float("nan"), 0.0), "^BackgroundSettings.color: expected 3 finite"),
+    ((-1.0, 0.0, 0.0), "^BackgroundSettings.color: expected 3 finite, non-negative"),
+    ("red", "^background: expected a BackgroundSettings or 3 floats")])
 def test_background_is_checked(background, match):
     with pytest.raises((ValueError, TypeError), match=match):
         tr.Renderer(8, background=background)
@@ -114,7 +116,7 @@ def test_plan_is_what_forward_ran():
     mesh = _ico(1)
     lights = tr.Lights(point=tr.PointLights(torch.tensor([[[0.0, 0, 3], [1, 1, 3]]]),
                                             torch.ones(1, 2, 3), torch.ones(1, 2)))
-    r = tr.Renderer(8, shading="pbr", supersample=2)
+    r = tr.Renderer(8, shading="pbr", raster=tr.RasterSettings(supersample=2))
     plan = r.plan(tr.RenderScene.from_mesh(mesh), lights, None, {"depth"})
     out = r(mesh, VIEW, PROJ, lights, channels={"depth"})
     assert out.plan == plan
@@ -128,7 +130,7 @@ def test_mip_cache_is_bounded_and_sees_in_place_edits():
 
     pos, faces = _quad()
     uvs = (pos[:, :2] + 1) / 2
-    renderer = tr.Renderer(16, shading="unlit", texture_filter="bilinear")
+    renderer = tr.Renderer(16, shading="unlit", textures=tr.TextureSettings(filter="bilinear"))
     tex = torch.full((3, 8, 8), 0.25)
     scene = tr.RenderScene(pos, faces, uvs=uvs, materials=[tr.Material(base_color_texture=tex)])
     first = renderer(scene, VIEW, PROJ).image
@@ -159,7 +161,8 @@ def test_antialias_gives_silhouette_gradients_to_geometry():
     faces = torch.tensor([[0, 1, 2], [0, 2, 3]])
     scale = torch.tensor(0.37, dtype=torch.float64, requires_grad=True)
     scene = tr.RenderScene(base * scale, faces)
-    out = tr.Renderer(64, shading="unlit", antialias=True)(scene, view.double(), proj.double())
+    out = tr.Renderer(64, shading="unlit", raster=tr.RasterSettings(antialias=True))(
+        scene, view.double(), proj.double())
     assert "antialias" in out.plan
     area = out.alpha.sum()
     (grad,) = torch.autograd.grad(area, scale)

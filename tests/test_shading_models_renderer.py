@@ -108,7 +108,7 @@ def test_pbr_is_the_unchanged_lighting_pass():
 def test_toon_options_reach_the_model():
     lights = _lights()
     opts = {"bands": 2, "rim": 0.7, "rim_width": 0.5}
-    out = tr.Renderer(24, shading="toon", shading_options=opts)(
+    out = tr.Renderer(24, shading=tr.ShadingSettings("toon", options=opts))(
         _sphere(), VIEW, PROJ, lights,
         channels={"position", "normal", "albedo", "metallic", "roughness", "mask"})
     eye = EYE
@@ -129,16 +129,16 @@ def test_toon_options_reach_the_model():
 
 
 def test_unknown_names_and_options_raise_naming_the_choices():
-    with pytest.raises(ValueError, match="shading: expected one of .*toon.*got 'cel'"):
+    with pytest.raises(ValueError, match="^ShadingSettings.model: expected one of .*toon.*got 'cel'"):
         tr.Renderer(8, shading="cel")
     with pytest.raises(ValueError, match=r"shading options \['bandz'\].*bands"):
-        tr.Renderer(8, shading="toon", shading_options={"bandz": 2})
+        tr.Renderer(8, shading=tr.ShadingSettings("toon", options={"bandz": 2}))
     with pytest.raises(ValueError, match="bands: expected an int >= 1"):
-        tr.Renderer(8, shading="toon", shading_options={"bands": 0})
-    with pytest.raises(ValueError, match="shading_options: shading 'unlit' takes no options"):
-        tr.Renderer(8, shading="unlit", shading_options={"bands": 2})
+        tr.Renderer(8, shading=tr.ShadingSettings("toon", options={"bands": 0}))
+    with pytest.raises(ValueError, match="^ShadingSettings.options: shading 'unlit' takes no options"):
+        tr.Renderer(8, shading=tr.ShadingSettings("unlit", options={"bands": 2}))
     with pytest.raises(ValueError, match="not parameters of model 'blinn_phong'"):
-        tr.Renderer(8, shading="blinn_phong", shading_options={"rim": 1.0})
+        tr.Renderer(8, shading=tr.ShadingSettings("blinn_phong", options={"rim": 1.0}))
 
 
 def test_the_plan_reports_the_model_and_skips_what_it_need_not():
@@ -272,11 +272,11 @@ def test_options_a_model_does_not_read_are_refused(tmp_path):
     there would be a silent no-op, so it is refused (Renderer and YAML), as is a
     max_anisotropy without the anisotropic filter."""
     with pytest.raises(ValueError, match="multiscatter"):
-        tr.Renderer(8, shading="toon", multiscatter=False)
-    tr.Renderer(8, shading="pbr", multiscatter=False)
+        tr.Renderer(8, shading=tr.ShadingSettings("toon", multiscatter=False))
+    tr.Renderer(8, shading=tr.ShadingSettings("pbr", multiscatter=False))
     with pytest.raises(ValueError, match="max_anisotropy"):
-        tr.Renderer(8, texture_filter="trilinear", max_anisotropy=4)
-    tr.Renderer(8, texture_filter="anisotropic", max_anisotropy=4)
+        tr.Renderer(8, textures=tr.TextureSettings(filter="trilinear", max_anisotropy=4))
+    tr.Renderer(8, textures=tr.TextureSettings(filter="anisotropic", max_anisotropy=4))
     text = TOON_YAML.replace("render:", "render:\n  multiscatter: false", 1)
     assert text != TOON_YAML
     with pytest.raises(tr.ConfigError, match="multiscatter"):

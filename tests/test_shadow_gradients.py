@@ -189,7 +189,7 @@ def test_light_intensity_gradient_is_exact(filt):
     scene = tr.RenderScene(pos, faces, materials=[tr.Material(roughness_factor=0.8)],
                            cast_shadows=cast)
     st = ShadowSettings(map_size=SIZE, filter=filt)
-    renderer = tr.Renderer(16, shadow_settings=st)
+    renderer = tr.Renderer(16, shadows=st)
     w = torch.rand(1, 3, 16, 16, dtype=F64, generator=torch.Generator().manual_seed(1))
 
     def f(i):

@@ -30,7 +30,10 @@ def _material(rgb, alpha=1.0, mode="OPAQUE", cutoff=0.5):
 def _render(materials, zs, layers=4, background=(0.0, 0.0, 0.0)):
     pos, faces, fm = _quads(*zs)
     scene = tr.RenderScene(pos, faces, face_material=fm, materials=materials)
-    r = tr.Renderer(8, shading="unlit", alpha_layers=layers, background=background)
+    r = tr.Renderer(8,
+                    shading="unlit",
+                    background=background,
+                    raster=tr.RasterSettings(alpha_layers=layers))
     return r(scene, VIEW, PROJ)
 
 
@@ -87,7 +90,7 @@ def test_opaque_scenes_rasterize_one_layer():
 
 def test_alpha_layers_is_checked():
     with pytest.raises(ValueError, match="alpha_layers"):
-        tr.Renderer(8, alpha_layers=0)
+        tr.Renderer(8, raster=tr.RasterSettings(alpha_layers=0))
 
 
 def test_antialias_reads_the_surface_a_cutout_shows():
@@ -95,11 +98,11 @@ def test_antialias_reads_the_surface_a_cutout_shows():
     pos, faces, fm = _quads(0.5, 0.0)
     scene = tr.RenderScene(pos, faces, face_material=fm,
                            materials=[_material(green, 0.2, "MASK", 0.3), _material(red)])
-    r = tr.Renderer(16, shading="unlit", antialias=True)
+    r = tr.Renderer(16, shading="unlit", raster=tr.RasterSettings(antialias=True))
     out = r(scene, VIEW, PROJ)
     assert "antialias" in out.plan
     assert bool(torch.isfinite(out.image).all()) and float(out.alpha.max()) <= 1.0
     # the front quad is cut out everywhere: the image is the back quad's, antialiased
-    plain = tr.Renderer(16, shading="unlit", antialias=True)(
+    plain = tr.Renderer(16, shading="unlit", raster=tr.RasterSettings(antialias=True))(
         tr.RenderScene(pos[4:], faces[2:] - 4, materials=[_material(red)]), VIEW, PROJ)
     torch.testing.assert_close(out.image, plain.image)

@@ -11,7 +11,9 @@ The contract and the layers are described in ``docs/design.md``. In data-flow or
 * light: :class:`Lights` (:class:`DirectionalLights`, :class:`PointLights`,
   :class:`SpotLights`, ambient SH from :func:`sh_from_color`), :class:`Environment`,
   :func:`shade`;
-* the whole frame: :class:`Renderer` -> :class:`RenderOutput` (effects:
+* the whole frame: :class:`Renderer` -> :class:`RenderOutput` (settings:
+  :class:`ShadingSettings`, :class:`RasterSettings`, :class:`TextureSettings`,
+  :class:`BackgroundSettings`, :class:`ShadowSettings`; effects:
   :class:`Dissolve`, background images :func:`load_background` / :func:`fit_background`);
 * post-processing: :mod:`torchraster.post`; YAML configs: :func:`load_config`,
   :func:`render_to_files`.
@@ -30,15 +32,19 @@ from .pipeline import render_config, render_to_files
 from .raster import Fragments, antialias, interpolate, interpolate_with_derivatives, rasterize
 from .renderer import NotImplementedWarning, Renderer, RenderOutput, RenderPlan
 from .scene import RenderScene
+from .settings import BackgroundSettings, RasterSettings, ShadingSettings, TextureSettings
 from .shading.ibl import Environment
 from .shading.lighting import shade
 from .shading.lights import DirectionalLights, Lights, PointLights, SpotLights, sh_from_color
+from .shading.shadows import ShadowSettings
 from .shading.volumetric import Fog
 
 __all__ = [
-    "CHANNELS", "ConfigError", "DirectionalLights", "Dissolve", "Environment", "Fog", "Fragments",
+    "BackgroundSettings", "CHANNELS", "ConfigError", "DirectionalLights", "Dissolve",
+    "Environment", "Fog", "Fragments",
     "GBuffer", "Lights", "Material", "Mesh", "MeshFileError", "NotImplementedWarning",
-    "PointLights", "RenderOutput", "RenderPlan", "RenderScene", "Renderer", "Scene", "SpotLights",
+    "PointLights", "RasterSettings", "RenderOutput", "RenderPlan", "RenderScene", "Renderer",
+    "Scene", "ShadingSettings", "ShadowSettings", "SpotLights", "TextureSettings",
     "antialias", "camera", "fit_background", "geometry_pass", "interpolate",
     "interpolate_with_derivatives", "lights_from_config", "load_background", "load_config",
     "load_mesh", "load_scene", "load_spot", "pack_meshes", "parse_config", "post", "rasterize",

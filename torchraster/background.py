@@ -2,7 +2,7 @@
 
     bg = load_background("studio.jpg")                 # (3, h, w) linear RGB
     img = fit_background(bg, (H, W), fit="contain")    # (1, 3, H, W)
-    renderer = Renderer((H, W), background_image=bg, background_fit="cover")
+    renderer = Renderer((H, W), background=BackgroundSettings(image=bg, fit="cover"))
 
 Fits keep the aspect ratio (except ``stretch``) and centre the image: ``cover`` scales it
 to fill the frame and crops the overflow, ``contain`` scales it to fit inside and fills the

@@ -1,6 +1,6 @@
 """Edge antialiasing: re-shade only the pixels on edges, at k x k sub-samples.
 
-``Renderer(edge_supersample=k)`` renders the frame at 1x as usual, then:
+``Renderer(raster=RasterSettings(edge_supersample=k))`` renders the frame at 1x as usual, then:
 
 1. rasterizes the scene once more at ``k x`` the resolution (visibility only is used
    beyond the edge pixels);
@@ -33,7 +33,7 @@ import torch
 from .numerics import safe_normalize
 from .raster import Fragments
 
-#: Largest per-axis factor of ``Renderer(edge_supersample=...)``.
+#: Largest per-axis factor of ``RasterSettings(edge_supersample=...)``.
 MAX_EDGE_SUPERSAMPLE: int = 8
 #: A pixel whose shadow visibility (any shadowed light, in [0, 1]) differs from a
 #: 4-neighbour's by more than this is an edge pixel (both pixels are flagged). Tests set

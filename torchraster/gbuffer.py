@@ -49,7 +49,7 @@ from __future__ import annotations
 import dataclasses
 import weakref
 from collections import OrderedDict
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -85,20 +85,21 @@ _SLOTS = {"albedo": "base_color", "alpha": "base_color", "metallic": "metallic_r
           "normal": "normal"}
 
 
-@dataclass
-class GBuffer:
+@dataclass(eq=False)
+class GBuffer(Mapping):
     """The per-pixel surface data of a frame: one ``(B, C, H, W)`` image per channel.
 
     Every channel is optional (None = not computed); the module table lists their shapes and
     meaning. All present channels share B, H and W (checked), so a G-buffer can be built by
     hand (e.g. analytic test scenes) as well as by :func:`geometry_pass`. Pass it to
     :func:`torchraster.shading.shade` by name: channels are fields, so ``metallic`` and
-    ``roughness`` cannot be swapped by position.
+    ``roughness`` cannot be swapped by position. It is also a read-only mapping of the
+    channels present (``gb["depth"]``, ``list(gb)``, ``gb.items()``, ``dict(gb)``).
 
     Example:
         >>> gb = GBuffer(albedo=torch.ones(1, 3, 2, 2), mask=torch.ones(1, 1, 2, 2))
-        >>> gb.channels()
-        ['albedo', 'mask']
+        >>> gb.channels(), list(gb), gb["mask"].shape, "depth" in gb
+        (['albedo', 'mask'], ['albedo', 'mask'], torch.Size([1, 1, 2, 2]), False)
     """
 
     depth: torch.Tensor | None = None
@@ -140,6 +141,19 @@ class GBuffer:
     def channels(self) -> list[str]:
         """Names of the channels present, in table order."""
         return [name for name in CHANNELS if getattr(self, name) is not None]
+
+    def __getitem__(self, name: str) -> torch.Tensor:
+        value = getattr(self, name, None) if name in CHANNEL_SIZES else None
+        if value is None:
+            raise KeyError(f"G-buffer channel {name!r} is not present; present: "
+                           f"{self.channels()}")
+        return value
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.channels())
+
+    def __len__(self) -> int:
+        return len(self.channels())
 
     def require(self, *names: str, by: str) -> None:
         """Raise a ValueError naming the missing channels that ``by`` needs."""

@@ -71,17 +71,19 @@ def safe_normalize(x: torch.Tensor, dim: int = -3, eps: float = NORMALIZE_EPS) -
     return (xc * inv).to(dtype)
 
 
-def specular_f0(albedo: torch.Tensor, metallic: torch.Tensor) -> torch.Tensor:
-    """Reflectance at normal incidence, ``mix(0.04, albedo, metallic)``.
+def specular_f0(albedo: torch.Tensor, metallic: torch.Tensor,
+                dielectric: float = DIELECTRIC_F0) -> torch.Tensor:
+    """Reflectance at normal incidence, ``mix(dielectric, albedo, metallic)``.
 
     Args:
         albedo: base colour, linear RGB, e.g. ``(B, 3, H, W)``.
         metallic: in [0, 1], broadcastable to ``albedo``, e.g. ``(B, 1, H, W)``.
+        dielectric: f0 of metallic = 0 (0.04: IOR 1.5).
 
     Returns:
         f0 with ``albedo``'s shape.
     """
-    return DIELECTRIC_F0 * (1.0 - metallic) + albedo * metallic
+    return dielectric * (1.0 - metallic) + albedo * metallic
 
 
 def diffuse_color(albedo: torch.Tensor, metallic: torch.Tensor) -> torch.Tensor:

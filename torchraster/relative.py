@@ -28,7 +28,7 @@ Compute dtype (the dtype of the results): the positions' dtype, except float64 p
 with a non-float64 projection, which render in float32 when camera-relative (float64
 positions and a float64 projection: a float64 render, the reference path).
 
-``Renderer(camera_relative=None)`` decides per call (:func:`plan_shift`): it applies when
+``RasterSettings(camera_relative=None)`` decides per call (:func:`plan_shift`): it applies when
 float64 positions would render in float32, when the view's dtype differs from the
 projection's (a float64 view of a far camera with a float32 projection; without the shift
 ``proj @ view`` refuses mixed dtypes), or when the farthest eye is more than
@@ -45,7 +45,7 @@ import dataclasses
 import math
 import warnings
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import torch
@@ -119,7 +119,7 @@ def plan_shift(mode: bool | None, positions: torch.Tensor, view: torch.Tensor,
     """Whether (and how) to render camera-relative.
 
     Args:
-        mode: ``Renderer(camera_relative=...)``: True, False or None (automatic, module
+        mode: ``RasterSettings(camera_relative=...)``: True, False or None (automatic, module
             docstring).
         positions: ``(B, V, 3)`` or ``(V, 3)`` world positions of the scene.
         view: ``(B, 4, 4)`` world -> view; proj: ``(B, 4, 4)``.
@@ -293,7 +293,7 @@ def render(renderer: Renderer, shift: Shift, scene: RenderScene, view: torch.Ten
     and in ``out.plan.origin``; other frames' rasterized depths are stored back on the
     caller's frames."""
     inner = copy.copy(renderer)
-    inner.camera_relative = False
+    inner.raster_settings = replace(renderer.raster_settings, camera_relative=False)
     inner.world_origin = shift.origin
     inner.fog = shift_fog(renderer.fog, shift)
     inner.dissolve = shift_dissolve(renderer.dissolve, shift)

@@ -35,9 +35,8 @@ from torch import nn
 from torch.utils.checkpoint import checkpoint
 
 from . import edge_aa, relative
-from ._validate import check_bool, check_int, check_resolution, check_tensor
-from .anisotropic import check_max_anisotropy
-from .background import FITS, fit_background
+from ._validate import check_resolution, check_tensor
+from .background import fit_background
 from .dissolve import Dissolve
 from .gbuffer import CHANNELS, GBuffer, MipCache, check_channels, geometry_pass
 from .material import Material
@@ -58,6 +57,13 @@ from .post.ssr import environment_specular, specular_weight
 from .raster import Fragments, antialias, rasterize
 from .raster.rasterize import rasterize_coverage
 from .scene import RenderScene, as_render_scene
+from .settings import (
+    LIT_MODELS,
+    BackgroundSettings,
+    RasterSettings,
+    ShadingSettings,
+    TextureSettings,
+)
 from .shading.ibl import Environment, content_key, shade_ibl
 from .shading.lighting import shade
 from .shading.lights import Lights
@@ -71,6 +77,7 @@ from .shading.shadows import (
     render_shadow_maps,
     shadow_visibility,
 )
+from .shading.surface import PixelSurface
 from .shading.volumetric import Fog, apply_fog, surface_light_hook
 from .transparency import (
     composite_over,
@@ -82,11 +89,25 @@ from .transparency import (
 
 log = logging.getLogger("torchraster")
 
-SHADING = ("pbr", "blinn_phong", "half_lambert", "toon", "headlight", "unlit")
-#: The lit shading paths and the model of :mod:`torchraster.shading.models` each uses.
-LIT_MODELS = {"pbr": "cook_torrance", "blinn_phong": "blinn_phong",
-              "half_lambert": "half_lambert", "toon": "toon"}
-TEXTURE_FILTERS = ("trilinear", "anisotropic", "bilinear", "nearest")
+#: Where each former ``Renderer`` keyword argument lives now: (settings class, field).
+_MOVED = {
+    "shading_options": ("ShadingSettings", "options"),
+    "multiscatter": ("ShadingSettings", "multiscatter"),
+    **{name: ("RasterSettings", name) for name in (
+        "supersample", "edge_supersample", "antialias", "cull_backfaces", "alpha_layers",
+        "max_batch", "camera_relative")},
+    "texture_filter": ("TextureSettings", "filter"),
+    "max_anisotropy": ("TextureSettings", "max_anisotropy"),
+    "mip_cache_bytes": ("TextureSettings", "cache_bytes"),
+    "environment_background": ("BackgroundSettings", "environment"),
+    "background_image": ("BackgroundSettings", "image"),
+    "background_fit": ("BackgroundSettings", "fit"),
+    "shadow_settings": ("ShadowSettings", ""),
+}
+#: The ``Renderer`` argument that takes each settings class.
+_GROUP_ARG = {"ShadingSettings": "shading", "RasterSettings": "raster",
+              "TextureSettings": "textures", "BackgroundSettings": "background",
+              "ShadowSettings": "shadows"}
 _SHADING_NEEDS = {
     **{name: {"position", "normal", "albedo", "metallic", "roughness", "ao", "emissive", "mask"}
        for name in LIT_MODELS},
@@ -128,7 +149,7 @@ class RenderPlan:
         derivatives: screen-space UV derivatives are computed (trilinear or anisotropic
             texturing).
         anisotropy: the most probes a pixel of anisotropic texture filtering
-            (``Renderer(texture_filter="anisotropic", max_anisotropy=...)``), 0 when it
+            (``TextureSettings(filter="anisotropic", max_anisotropy=...)``), 0 when it
             does not run (another filter, or no material has a texture).
         shadow_lights: ``(kind, light indices, settings)`` of each group of lights whose
             shadow maps are rendered (only lights with ``cast_shadows``, and only when some
@@ -145,7 +166,7 @@ class RenderPlan:
         multiscatter: the Cook-Torrance energy terms (multiple-scattering compensation and
             the matching diffuse reduction, :mod:`~torchraster.shading.energy`) for every
             light type: ``"pbr"`` with lights or an environment and
-            ``Renderer(multiscatter=True)``.
+            ``ShadingSettings(multiscatter=True)``.
         ibl_specular: ``"split_sum"`` (prefiltered chain) or ``"importance"`` (per-pixel
             filtered importance sampling, ``Environment(specular=...)``) when ``ibl``.
         dissolve: the dissolve effect (:mod:`~torchraster.dissolve`), e.g.
@@ -160,15 +181,15 @@ class RenderPlan:
             requested channel: ``"flow forward"``, ``"flow forward valid"``,
             ``"flow backward"``, ``"flow backward valid"``, ``"motion vectors"``.
         chunks: the batch sizes of the consecutive calls a batch larger than
-            ``Renderer(max_batch=...)`` was split into, filled in by ``forward``
+            ``RasterSettings(max_batch=...)`` was split into, filled in by ``forward``
             (step ``"batch B in K chunks of <= max_batch"``); empty when it ran in one call.
         edge_supersample: per-axis factor k of the edge antialiasing pass
-            (:mod:`~torchraster.edge_aa`, ``Renderer(edge_supersample=k)``; 1 = off).
+            (:mod:`~torchraster.edge_aa`, ``RasterSettings(edge_supersample=k)``; 1 = off).
         edge_pixels: how many pixels (whole batch) that pass re-shaded at k x k
             sub-samples, filled in by ``forward`` (step ``"edge supersample kx: N pixels"``;
             None before).
         origin: the world point the render was computed relative to
-            (``Renderer(camera_relative=...)``, :mod:`~torchraster.relative`), filled in by
+            (``RasterSettings(camera_relative=...)``, :mod:`~torchraster.relative`), filled in by
             ``forward`` (step ``"camera-relative origin (x, y, z)"``); None when not.
 
     Iterating a plan yields its human-readable :attr:`steps`.
@@ -274,13 +295,14 @@ class RenderOutput:
         image: ``(B, 3, H, W)`` linear HDR radiance including the background.
         alpha: ``(B, 1, H, W)`` coverage (times the material's base-colour alpha when the
             ``alpha`` channel was requested).
-        gbuffer: ``{channel: (B, C, H, W)}`` for the requested channels.
+        gbuffer: a :class:`~torchraster.GBuffer` holding the requested channels, each
+            ``(B, C, H, W)`` (the others None); also a mapping ``{channel: image}``.
         plan: the :class:`RenderPlan` that ran.
     """
 
     image: torch.Tensor
     alpha: torch.Tensor
-    gbuffer: dict[str, torch.Tensor]
+    gbuffer: GBuffer
     plan: RenderPlan
 
 
@@ -341,97 +363,73 @@ def _check_camera(name: str, m: torch.Tensor) -> torch.Tensor:
 class Renderer(nn.Module):
     """Differentiable deferred renderer (see the module docstring for the data flow).
 
+    Settings come in groups (:mod:`torchraster.settings`, the fields of the YAML ``render:``
+    section); the effects are modules.
+
     Args:
         resolution: ``(H, W)`` or an int for a square image.
-        shading: one of :data:`SHADING`: ``"pbr"`` (Cook-Torrance), the stylised
+        shading: a :class:`~torchraster.settings.ShadingSettings`, or the name of its
+            model (one of :data:`SHADING`): ``"pbr"`` (Cook-Torrance), the stylised
             ``"blinn_phong"``, ``"half_lambert"``, ``"toon"`` (same lights, shadows,
             ambient and environment as pbr, another BRDF for the punctual lights; see
             :mod:`torchraster.shading.models`), ``"headlight"`` or ``"unlit"``.
-        shading_options: keyword parameters of the shading model, e.g.
-            ``{"bands": 4, "rim": 0.5}`` for ``"toon"`` (see
-            :func:`~torchraster.shading.models.toon`); a name the model does not take
-            raises a ValueError naming it.
-        supersample: render at ``s x`` the resolution and box-filter down (anti-aliasing).
-        edge_supersample: antialias edges only (:mod:`torchraster.edge_aa`): the frame is
-            rendered at 1x, the scene rasterized again at ``k x`` the resolution, and the
-            pixels on geometric edges (silhouettes, occlusion edges, creases, material
-            boundaries) and shadow edges are shaded at their ``k x k`` sub-samples through
-            the same passes and box-filtered (``image`` and ``alpha``; labels and the
-            G-buffer stay the 1x frame's). 1 = off, up to 8. Not combined with
-            ``supersample > 1`` or ``antialias`` (ValueError); not implemented with
-            ``ssao``, ``ssr``, ``fog``, ``dissolve`` or glTF ``MASK`` / ``BLEND`` materials
-            (NotImplementedError naming them). ``out.plan.edge_pixels`` counts the pixels.
-        cull_backfaces: drop clockwise (back-facing) triangles.
-        background: RGB (3 non-negative finite floats) of empty pixels; replaced by the
-            environment when ``environment_background``.
-        environment_background: show the environment behind the scene.
-        background_image: ``(3, h, w)`` or ``(B, 3, h, w)`` linear RGB shown behind the
-            scene (where ``alpha < 1``), fitted to the frame by ``background_fit``; it
-            replaces the environment and the colour as background (the colour fills the
-            bars of ``"contain"``). Load files with
-            :func:`~torchraster.background.load_background`.
-        background_fit: ``"cover"`` (fill, crop), ``"contain"`` (letterbox) or
-            ``"stretch"`` (see :mod:`torchraster.background`).
-        texture_filter: ``"trilinear"``, ``"anisotropic"`` (up to ``max_anisotropy``
-            trilinear probes along each pixel's footprint, :mod:`torchraster.anisotropic`),
-            ``"bilinear"`` or ``"nearest"``.
-        max_anisotropy: the most probes a pixel of ``"anisotropic"`` filtering (1 to 64;
-            2 to 16 like GPUs; docs/benchmarks.md, quality-texture, measures each).
+        raster: :class:`~torchraster.settings.RasterSettings`: supersampling, edge
+            antialiasing (:mod:`torchraster.edge_aa`: pixels on geometric and shadow edges
+            shaded at ``k x k`` sub-samples; labels and the G-buffer stay the 1x frame's;
+            ``out.plan.edge_pixels`` counts them), analytic silhouette antialiasing
+            (:func:`~torchraster.antialias`: gradients at silhouettes), back-face culling,
+            the depth layers of MASK / BLEND materials (shadow maps ignore alpha: cut-outs
+            cast solid shadows), ``max_batch`` and ``camera_relative`` (below).
+        textures: :class:`~torchraster.settings.TextureSettings`: the filter
+            (:mod:`torchraster.anisotropic` for ``"anisotropic"``; docs/benchmarks.md,
+            quality-texture, measures each) and the bound of the mip-pyramid cache.
+        background: :class:`~torchraster.settings.BackgroundSettings`, or the RGB of empty
+            pixels: a colour, the environment (when one is given and shown), or an image
+            (:func:`~torchraster.background.load_background`) fitted to the frame, which
+            replaces both (the colour fills the bars of ``"contain"``).
+        shadows: True: shadow maps for lights with ``cast_shadows``, with the default
+            :class:`~torchraster.shading.shadows.ShadowSettings` for lights that carry none
+            of their own (``lights.<kind>.shadow``); a ``ShadowSettings``: the same with
+            these settings; False: no shadow pass at all, whatever the lights say.
         ssao: an enabled ``torchraster.post.SSAO`` module: its AO (from depth and view-space
             normals) multiplies the material AO before lighting (lit models only).
         ssr: an enabled ``torchraster.post.SSR`` module: screen-space reflections of the
             lit frame replace the environment's (IBL and ambient) specular where the
             mirror rays hit (``"pbr"`` only; planned only when some material may be
             smoother than its ``max_roughness``; not with ``BLEND`` materials).
-        mip_cache_bytes: bound of the cache of constant textures' mip pyramids.
-        shadows: render shadow maps for lights with ``cast_shadows`` (False: no shadow
-            pass at all, whatever the lights say).
-        alpha_layers: depth layers rasterized when a material's ``alpha_mode`` is ``MASK``
-            or ``BLEND`` (surfaces behind the K nearest are not seen through cut-outs or
-            blended surfaces; shadow maps ignore alpha: cut-outs cast solid shadows).
-        antialias: blend colours and coverage across silhouette edges by the sub-pixel
-            position of the edge (:func:`~torchraster.antialias`), which gives gradients
-            with respect to geometry and camera at silhouettes (``out.alpha`` too).
-        shadow_settings: the :class:`~torchraster.shading.shadows.ShadowSettings` of
-            shadow-casting lights that carry none of their own (``lights.<kind>.shadow``).
         fog: a :class:`~torchraster.shading.volumetric.Fog`: exponential height fog lit by
             the lights (applied to surfaces and background before antialiasing). Lights
             with shadow maps cast light shafts; the others in-scatter unshadowed. With
             ``"headlight"`` / ``"unlit"`` shading only ``Fog.ambient`` lights the fog.
-        multiscatter: multiple-scattering energy compensation of the Cook-Torrance
-            specular and the diffuse reduced by the specular's albedo, for punctual,
-            ambient and image-based light alike (``"pbr"`` only; see
-            :mod:`torchraster.shading.energy`). False: the single-scattering BRDF.
         dissolve: a :class:`~torchraster.dissolve.Dissolve`: surfaces are discarded where
             a seeded noise of their world position falls below its threshold (cut out like
             glTF ``MASK``, ``alpha_layers`` deep) and glow in a band above it; the glow is
             differentiable in the threshold.
-        max_batch: render at most this many batch items at once (None: the whole batch).
-            A larger batch is split into consecutive chunks whose outputs are concatenated:
-            the same images, alpha and G-buffer channels bit for bit, and memory that
-            grows with ``max_batch`` instead of the batch (docs/benchmarks.md, section
-            memory). With autograd on, each chunk is recomputed in backward
-            (``torch.utils.checkpoint``), so the graph holds the chunks' inputs and
-            outputs only (backward then costs one more forward). Every per-item input is
-            sliced (cameras, per-item positions and vertex data, ``face_ranges``, lights
-            and other frames of batch B, a ``(B, 3, h, w)`` background image, a ``(B,)``
-            dissolve threshold); an environment with per-item radiance, rotation or
-            intensity raises NotImplementedError. ``out.plan.chunks`` reports the split.
-        camera_relative: render in coordinates centred at the batch's mean eye
-            (:mod:`torchraster.relative`): positions minus that origin are computed in
-            float64 and then cast, the view, point / spot lights, other frames, fog and
-            dissolve shifted alike; the ``position`` channel is returned in world space (in
-            the compute dtype, so far from the origin it carries that dtype's absolute
-            rounding). None (default): automatic, when float64 positions meet a float32
-            projection (rendered in float32), a float64 view meets a float32 projection,
-            or the farthest eye is more than ``relative.FAR_RATIO`` (256) times the
-            largest of the scene's extent, the eye's distance to the scene and the near
-            plane from the origin; a scene near the origin is rendered exactly as with
-            False (``out.plan.origin`` is None; else the origin, step
-            ``camera-relative origin (x, y, z)``). Results come
-            out in the positions' dtype, except float64 positions with a float32 projection
-            under camera-relative rendering: float32. float32 positions far from the origin
-            warn (their rounding cannot be undone; pass float64).
+
+    ``RasterSettings.max_batch``: a larger batch is split into consecutive chunks whose
+    outputs are concatenated: the same images, alpha and G-buffer channels bit for bit,
+    and memory that grows with ``max_batch`` instead of the batch (docs/benchmarks.md,
+    section memory). With autograd on, each chunk is recomputed in backward
+    (``torch.utils.checkpoint``), so the graph holds the chunks' inputs and outputs only
+    (backward then costs one more forward). Every per-item input is sliced (cameras,
+    per-item positions and vertex data, ``face_ranges``, lights and other frames of batch
+    B, a ``(B, 3, h, w)`` background image, a ``(B,)`` dissolve threshold); an environment
+    with per-item radiance, rotation or intensity raises NotImplementedError.
+    ``out.plan.chunks`` reports the split.
+
+    ``RasterSettings.camera_relative``: render in coordinates centred at the batch's mean
+    eye (:mod:`torchraster.relative`): positions minus that origin are computed in float64
+    and then cast, the view, point / spot lights, other frames, fog and dissolve shifted
+    alike; the ``position`` channel is returned in world space (in the compute dtype, so far
+    from the origin it carries that dtype's absolute rounding). None (default): automatic,
+    when float64 positions meet a float32 projection (rendered in float32), a float64 view
+    meets a float32 projection, or the farthest eye is more than ``relative.FAR_RATIO``
+    (256) times the largest of the scene's extent, the eye's distance to the scene and the
+    near plane from the origin; a scene near the origin is rendered exactly as with False
+    (``out.plan.origin`` is None; else the origin, step ``camera-relative origin (x, y,
+    z)``). Results come out in the positions' dtype, except float64 positions with a
+    float32 projection under camera-relative rendering: float32. float32 positions far from
+    the origin warn (their rounding cannot be undone; pass float64).
 
     Example:
         >>> import torchraster as tr
@@ -440,77 +438,49 @@ class Renderer(nn.Module):
         ...                                         tr.camera.perspective(45.0, 1.0, 0.1))
         >>> out.image.shape, out.alpha.shape
         (torch.Size([2, 3, 64, 64]), torch.Size([2, 1, 64, 64]))
+        >>> r = Renderer(64, shading="unlit", raster=RasterSettings(supersample=2))
+        >>> r.plan(tr.load_spot()).resolution
+        (128, 128)
     """
 
     def __init__(
         self,
         resolution: tuple[int, int] | int,
         *,
-        shading: str = "pbr",
-        shading_options: Mapping[str, Any] | None = None,
-        supersample: int = 1,
-        edge_supersample: int = 1,
-        cull_backfaces: bool = False,
-        background: Sequence[float] = (0.0, 0.0, 0.0),
-        environment_background: bool = True,
-        background_image: torch.Tensor | None = None,
-        background_fit: str = "cover",
-        texture_filter: str = "trilinear",
-        max_anisotropy: int = 16,
+        shading: str | ShadingSettings = "pbr",
+        raster: RasterSettings | None = None,
+        textures: TextureSettings | None = None,
+        background: BackgroundSettings | Sequence[float] | None = None,
+        shadows: bool | ShadowSettings = True,
         ssao: nn.Module | None = None,
         ssr: nn.Module | None = None,
-        mip_cache_bytes: int = 512 * 2**20,
-        shadows: bool = True,
-        shadow_settings: ShadowSettings | None = None,
-        alpha_layers: int = 4,
-        antialias: bool = False,
         fog: Fog | None = None,
-        multiscatter: bool = True,
         dissolve: Dissolve | None = None,
-        max_batch: int | None = None,
-        camera_relative: bool | None = None,
+        **moved: Any,
     ) -> None:
         super().__init__()
+        if moved:
+            name = next(iter(moved))
+            home = _MOVED.get(name)
+            if home is None:
+                raise TypeError(f"Renderer: unexpected keyword argument {name!r}")
+            group, field_name = home
+            if not field_name:
+                raise TypeError(f"Renderer({name}=...): pass the {group} as "
+                                f"Renderer(..., {_GROUP_ARG[group]}={group}(...))")
+            raise TypeError(f"Renderer({name}=...): now {group}({field_name}=...), passed as "
+                            f"Renderer(..., {_GROUP_ARG[group]}={group}({field_name}=...))")
         self.resolution = check_resolution(resolution)
-        if shading not in SHADING:
-            raise ValueError(f"shading: expected one of {SHADING}, got {shading!r}")
-        if shading_options and shading not in LIT_MODELS:
-            raise ValueError(f"shading_options: shading {shading!r} takes no options, got "
-                             f"{sorted(shading_options)}")
-        self.shading_options = dict(shading_options or {})
-        self.model = (get_model(LIT_MODELS[shading], **self.shading_options)
-                      if shading in LIT_MODELS else None)
-        supersample = check_int("supersample", supersample, 1)
-        if texture_filter not in TEXTURE_FILTERS:
-            raise ValueError(f"texture_filter: expected one of {TEXTURE_FILTERS}, got "
-                             f"{texture_filter!r}")
-        try:
-            bg = torch.as_tensor(background, dtype=torch.float32, device="cpu").flatten()  # buffer
-        except (TypeError, ValueError, RuntimeError):
-            raise TypeError(f"background: expected 3 floats (RGB), got {background!r}") from None
-        if bg.numel() != 3 or not bool(torch.isfinite(bg).all()) or bool((bg < 0).any()):
-            raise ValueError(f"background: expected 3 finite, non-negative floats (linear RGB), "
-                             f"got {background!r}")
-        self.shading = shading
-        self.supersample = supersample
-        self.cull_backfaces = check_bool("cull_backfaces", cull_backfaces)
-        self.register_buffer("background", bg, persistent=False)
-        self.environment_background = check_bool("environment_background",
-                                                 environment_background)
-        if background_fit not in FITS:
-            raise ValueError(f"background_fit: expected one of {FITS}, got {background_fit!r}")
-        if background_image is not None:
-            if isinstance(background_image, torch.Tensor) and background_image.dim() == 3:
-                background_image = background_image[None]
-            check_tensor("background_image", background_image, ("B", 3, "h", "w"),
-                         floating=True, finite=True)
-        self.background_image = background_image
-        self.background_fit = background_fit
-        self.texture_filter = texture_filter
-        self.max_anisotropy = check_max_anisotropy(max_anisotropy)
-        if self.max_anisotropy != 16 and texture_filter != "anisotropic":
-            raise ValueError(f"max_anisotropy: used by texture_filter='anisotropic' only; "
-                             f"texture_filter is {texture_filter!r}")
+        self.shading_settings = (ShadingSettings(shading) if isinstance(shading, str)
+                                 else _check_group("shading", shading, ShadingSettings))
+        self.raster_settings = _check_group("raster", raster, RasterSettings)
+        self.texture_settings = _check_group("textures", textures, TextureSettings)
+        if background is not None and not isinstance(background, BackgroundSettings):
+            if isinstance(background, (str, bytes, Mapping)):
+                raise TypeError(f"background: expected a BackgroundSettings or 3 floats "
+                                f"(RGB), got {background!r}")
+            background = BackgroundSettings(color=background)
+        self.background_settings = background or BackgroundSettings()
         for name, module in (("ssao", ssao), ("ssr", ssr)):
             if module is not None and not isinstance(module, nn.Module):
                 raise TypeError(f"{name}: expected a torchraster.post.{name.upper()} module or "
@@ -518,51 +488,47 @@ class Renderer(nn.Module):
         self.ssao = ssao if ssao is not None and getattr(ssao, "enabled", True) else None
         self.ssr = ssr if ssr is not None and getattr(ssr, "enabled", True) else None
         self._raster_memo = _RasterMemo()
-        self.mip_cache = MipCache(check_int("mip_cache_bytes", mip_cache_bytes, 0))
-        if shadow_settings is not None and not isinstance(shadow_settings, ShadowSettings):
-            raise TypeError(f"shadow_settings: expected a ShadowSettings or None, got "
-                            f"{type(shadow_settings).__name__}")
-        self.shadows = check_bool("shadows", shadows)
-        self.shadow_settings = shadow_settings or ShadowSettings()
+        self.mip_cache = MipCache(self.texture_settings.cache_bytes)
+        if not isinstance(shadows, (bool, ShadowSettings)):
+            raise TypeError(f"shadows: expected True, False or a ShadowSettings, got "
+                            f"{shadows!r}")
+        self.shadows = shadows is not False
+        self.shadow_settings = shadows if isinstance(shadows, ShadowSettings) else (
+            ShadowSettings())
         # depth maps of static casters and lights reused across calls (None: off)
         self.shadow_cache: ShadowMapCache | None = ShadowMapCache()
-        self.alpha_layers = check_int("alpha_layers", alpha_layers, 1, 16)
-        self.antialias = check_bool("antialias", antialias)
         if fog is not None and not isinstance(fog, Fog):
             raise TypeError(f"fog: expected a torchraster.shading.volumetric.Fog or None, got "
                             f"{type(fog).__name__}")
         self.fog = fog
-        self.multiscatter = check_bool("multiscatter", multiscatter)
-        if not self.multiscatter and shading != "pbr":
-            raise ValueError(f"multiscatter: the energy terms of pbr shading; shading is "
-                             f"{shading!r}, which has none to switch off")
         if dissolve is not None and not isinstance(dissolve, Dissolve):
             raise TypeError(f"dissolve: expected a torchraster.dissolve.Dissolve or None, got "
                             f"{type(dissolve).__name__}")
         self.dissolve = dissolve
-        self.edge_supersample = self._check_edge_supersample(edge_supersample)
-        self.max_batch = None if max_batch is None else check_int("max_batch", max_batch, 1)
-        if camera_relative is not None:
-            check_bool("camera_relative", camera_relative)
-        self.camera_relative = camera_relative
+        if self.raster_settings.edge_supersample > 1:
+            for name in ("ssao", "ssr", "fog", "dissolve"):
+                if getattr(self, name) is not None:
+                    raise NotImplementedError(
+                        f"RasterSettings.edge_supersample: not implemented with {name}= "
+                        f"yet; use supersample instead")
         self.world_origin: torch.Tensor | None = None  # set on the inner camera-relative copy
 
-    def _check_edge_supersample(self, k: object) -> int:
-        """``edge_supersample`` checked against the other options (set before it)."""
-        k = check_int("edge_supersample", k, 1, edge_aa.MAX_EDGE_SUPERSAMPLE)
-        if k == 1:
-            return k
-        if self.supersample > 1:
-            raise ValueError(f"edge_supersample: not combined with supersample="
-                             f"{self.supersample} (use one of them)")
-        if self.antialias:
-            raise ValueError("edge_supersample: not combined with antialias=True (both "
-                             "antialias edges; use one of them)")
-        for name in ("ssao", "ssr", "fog", "dissolve"):
-            if getattr(self, name) is not None:
-                raise NotImplementedError(f"edge_supersample: not implemented with {name}= "
-                                          f"yet; use supersample instead")
-        return k
+    @property
+    def shading(self) -> str:
+        """The shading model's name (``shading_settings.model``)."""
+        return self.shading_settings.model
+
+    @property
+    def shading_settings(self) -> ShadingSettings:
+        """What the surfaces are shaded with."""
+        return self._shading_settings
+
+    @shading_settings.setter
+    def shading_settings(self, settings: ShadingSettings) -> None:
+        self._shading_settings = _check_group("shading_settings", settings, ShadingSettings)
+        self.model = (get_model(LIT_MODELS[settings.model], **settings.options)
+                      if settings.model in LIT_MODELS else None)
+
 
     def plan(self, scene: RenderScene, lights: Lights | None = None,
              environment: Environment | None = None, channels: Iterable[str] = ()
@@ -591,7 +557,7 @@ class Renderer(nn.Module):
         alpha = "blend" if "BLEND" in modes else "mask" if "MASK" in modes else "none"
         if self.dissolve is not None:
             alpha = "mask" if alpha == "none" else alpha  # discarded surfaces show what is behind
-        if self.edge_supersample > 1 and alpha != "none":
+        if self.raster_settings.edge_supersample > 1 and alpha != "none":
             raise NotImplementedError(f"edge_supersample: not implemented with glTF "
                                       f"{alpha.upper()} materials yet; use supersample instead")
         ssr = self._plan_ssr(scene, shading, alpha)
@@ -615,19 +581,20 @@ class Renderer(nn.Module):
                 group = getattr(lights, kind)
                 if group is not None and group.count:
                     light_kinds.append((kind, group.count))
-        if self.background_image is not None:
-            background = f"image {self.background_fit}"
-        elif environment is not None and self.environment_background:
+        if self.background_settings.image is not None:
+            background = f"image {self.background_settings.fit}"
+        elif environment is not None and self.background_settings.environment:
             background = "environment"
-        elif bool((self.background != 0).any()):
+        elif any(c != 0 for c in self.background_settings.color):
             background = "colour"
         else:
             background = "none"
         textured = any(m is not None and any(getattr(m, s) is not None for s in _TEXTURE_SLOTS)
                        for m in scene.materials)
         single_sided = [m is not None and not m.double_sided for m in scene.materials]
-        cull = "all" if self.cull_backfaces else "single-sided" if any(single_sided) else "none"
-        s = self.supersample
+        rs, ts = self.raster_settings, self.texture_settings
+        cull = "all" if rs.cull_backfaces else "single-sided" if any(single_sided) else "none"
+        s = rs.supersample
         shadow_lights = ()
         if shading in LIT_MODELS and lights is not None and self.shadows:
             shadow_lights = self._plan_shadows(scene, lights)
@@ -639,17 +606,16 @@ class Renderer(nn.Module):
             channels=frozenset(channels), requested=frozenset(requested), shading=shading,
             lights=tuple(light_kinds), ssao=ssao,
             ibl=shading in LIT_MODELS and environment is not None, background=background, cull=cull,
-            derivatives=textured and self.texture_filter in ("trilinear", "anisotropic"),
-            anisotropy=self.max_anisotropy if textured and self.texture_filter == "anisotropic"
-            else 0,
-            shadow_lights=shadow_lights, layers=self.alpha_layers if alpha != "none" else 1,
-            alpha=alpha, antialias=self.antialias, fog=fog, dissolve=self._plan_dissolve(),
-            multiscatter=self.multiscatter and shading == "pbr" and bool(
+            derivatives=textured and ts.filter in ("trilinear", "anisotropic"),
+            anisotropy=ts.max_anisotropy if textured and ts.filter == "anisotropic" else 0,
+            shadow_lights=shadow_lights, layers=rs.alpha_layers if alpha != "none" else 1,
+            alpha=alpha, antialias=rs.antialias, fog=fog, dissolve=self._plan_dissolve(),
+            multiscatter=self.shading_settings.multiscatter and shading == "pbr" and bool(
                 light_kinds or environment is not None),
             ibl_specular=environment.specular_mode if environment is not None
             else "split_sum", ssr=ssr,
             amodal=scene.num_objects if "amodal" in requested else 0,
-            motion=_motion_steps(requested), edge_supersample=self.edge_supersample)
+            motion=_motion_steps(requested), edge_supersample=self.raster_settings.edge_supersample)
 
     def _plan_ssr(self, scene: RenderScene, shading: str, alpha: str) -> bool:
         """SSR runs for ``"pbr"`` when some material may be smoother than the cut-off."""
@@ -765,7 +731,8 @@ class Renderer(nn.Module):
         scene = as_render_scene(scene)
         view = _check_camera("view", view)
         proj = _check_camera("proj", proj)
-        shift = relative.plan_shift(self.camera_relative, scene.positions, view, proj)
+        shift = relative.plan_shift(self.raster_settings.camera_relative, scene.positions,
+                                    view, proj)
         if shift is not None:  # far from the origin: render camera-relative (relative.py)
             return relative.render(self, shift, scene, view, proj, lights, environment,
                                    channels, next_frame, previous_frame)
@@ -784,7 +751,7 @@ class Renderer(nn.Module):
         for name, frame in frames.items():
             frame.check_against(name, positions.shape[-2], b)
             frame.check_depth(name, plan.resolution, b)
-        if self.max_batch is not None and b > self.max_batch:
+        if self.raster_settings.max_batch is not None and b > self.raster_settings.max_batch:
             return self._forward_chunks(scene, view, proj, lights, environment, channels,
                                         frames, b)
         view, proj = view.expand(b, 4, 4), proj.expand(b, 4, 4)
@@ -801,8 +768,9 @@ class Renderer(nn.Module):
         gbs = [geometry_pass(f, plan.channels, positions=positions, view=view,
                              normals=normals, uvs=scene.uvs, tangents=scene.tangents,
                              face_material=scene.face_material, materials=scene.materials,
-                             texture_filter=self.texture_filter, mip_cache=self.mip_cache,
-                             max_anisotropy=self.max_anisotropy, face_object=scene.face_object,
+                             texture_filter=self.texture_settings.filter, mip_cache=self.mip_cache,
+                             max_anisotropy=self.texture_settings.max_anisotropy,
+                             face_object=scene.face_object,
                              object_category=scene.object_category,
                              object_coords=scene.object_coords)
                for f in layers]
@@ -873,14 +841,16 @@ class Renderer(nn.Module):
         if plan.ssr:  # replace the environment's specular where the mirror rays hit
             radiance = self._reflect(plan, gb, radiance, coverage, view, proj, eye, lights,
                                      environment)
+        color = torch.tensor(self.background_settings.color, device=radiance.device,
+                             dtype=radiance.dtype)
         if plan.background == "environment":
             rays = view_rays(view, proj, plan.resolution).to(radiance.dtype)
             background = environment.background(rays)
         elif plan.background.startswith("image"):
-            background = fit_background(self.background_image.to(radiance), plan.resolution,
-                                        self.background_fit, self.background)
+            background = fit_background(self.background_settings.image.to(radiance),
+                                        plan.resolution, self.background_settings.fit, color)
         else:
-            background = self.background.to(radiance).view(1, 3, 1, 1)
+            background = color.view(1, 3, 1, 1)
         image = radiance + transmittance * background
         if plan.fog:
             image = self._apply_fog(plan, image, gb, view, proj, eye, lights, groups, scene,
@@ -906,7 +876,7 @@ class Renderer(nn.Module):
             s = plan.supersample
             image, alpha = F.avg_pool2d(image, s), F.avg_pool2d(alpha, s)
             outputs = outputs.downsample(s)
-        return RenderOutput(image=image, alpha=alpha, gbuffer=outputs.as_dict(), plan=plan)
+        return RenderOutput(image=image, alpha=alpha, gbuffer=outputs, plan=plan)
 
     def _forward_chunks(self, scene: RenderScene, view: torch.Tensor, proj: torch.Tensor,
                         lights: Lights | None, environment: Environment | None,
@@ -920,15 +890,17 @@ class Renderer(nn.Module):
                 "max_batch: an Environment with per-item radiance, rotation or intensity "
                 "cannot be split into chunks yet; use max_batch=None or a shared environment")
         outs: list[RenderOutput] = []
-        for start in range(0, b, self.max_batch):
-            sl = slice(start, min(start + self.max_batch, b))
+        for start in range(0, b, self.raster_settings.max_batch):
+            sl = slice(start, min(start + self.raster_settings.max_batch, b))
             # one renderer per chunk (a checkpointed chunk reruns it in backward): it shares
             # the modules, buffers and caches, holds the chunk's items and splits no further
             inner = copy.copy(self)
-            inner.max_batch = None
-            inner.camera_relative = False  # decided (and applied) once for the whole batch
-            if self.background_image is not None and self.background_image.shape[0] == b:
-                inner.background_image = self.background_image[sl]
+            # no further split; camera-relative decided (and applied) once for the batch
+            inner.raster_settings = replace(self.raster_settings, max_batch=None,
+                                            camera_relative=False)
+            image = self.background_settings.image
+            if image is not None and image.shape[0] == b:
+                inner.background_settings = replace(self.background_settings, image=image[sl])
             threshold = None if self.dissolve is None else self.dissolve.threshold
             if isinstance(threshold, torch.Tensor) and threshold.numel() == b > 1:
                 inner.dissolve = replace(self.dissolve, threshold=threshold.reshape(-1)[sl])
@@ -952,7 +924,8 @@ class Renderer(nn.Module):
                 # the dummy input gives checkpoint a tensor argument (the inputs are read
                 # from the closure, which non-reentrant checkpointing supports)
                 res = checkpoint(run, view, use_reentrant=False)
-                outs.append(RenderOutput(res[0], res[1], dict(zip(names, res[2:], strict=True)),
+                outs.append(RenderOutput(res[0], res[1],
+                                         GBuffer(**dict(zip(names, res[2:], strict=True))),
                                          plans[0]))
             else:
                 outs.append(inner.forward(*args, **kwargs))
@@ -963,8 +936,8 @@ class Renderer(nn.Module):
             plan = replace(plan, edge_pixels=sum(o.plan.edge_pixels for o in outs))
         return RenderOutput(image=torch.cat([o.image for o in outs]),
                             alpha=torch.cat([o.alpha for o in outs]),
-                            gbuffer={k: torch.cat([o.gbuffer[k] for o in outs])
-                                     for k in outs[0].gbuffer}, plan=plan)
+                            gbuffer=GBuffer(**{k: torch.cat([o.gbuffer[k] for o in outs])
+                                               for k in outs[0].gbuffer}), plan=plan)
 
     def _reflect(self, plan: RenderPlan, gb: GBuffer, radiance: torch.Tensor,
                  coverage: torch.Tensor, view: torch.Tensor, proj: torch.Tensor,
@@ -1084,9 +1057,10 @@ class Renderer(nn.Module):
                                                  projection=proj.to(depth.dtype)))
         ibl = None
         if plan.ibl:
-            def ibl(n, v, a, m, r):  # the covered pixels only (the rest is 0, as after
-                return shade_ibl(n, v, a, m, r, None, environment,  # the mask below)
-                                 multiscatter=plan.multiscatter, mask=gb.mask)
+            def ibl(s: PixelSurface) -> torch.Tensor:  # the covered pixels only (the rest
+                return shade_ibl(s.n, s.v, s.albedo, s.metallic, s.roughness,  # is 0, as
+                                 None, environment, multiscatter=plan.multiscatter,  # after
+                                 mask=gb.mask)  # the mask below)
         return shade(gb, camera_position=eye, lights=lights, model=self.model, ibl=ibl,
                      multiscatter=plan.multiscatter,
                      visibility=visibility)
@@ -1126,8 +1100,8 @@ class Renderer(nn.Module):
         gb = geometry_pass(packed.frags, wanted, positions=scene.positions, view=view,
                            normals=normals, uvs=scene.uvs, tangents=scene.tangents,
                            face_material=scene.face_material, materials=scene.materials,
-                           texture_filter=self.texture_filter, mip_cache=self.mip_cache,
-                           max_anisotropy=self.max_anisotropy)
+                           texture_filter=self.texture_settings.filter, mip_cache=self.mip_cache,
+                           max_anisotropy=self.texture_settings.max_anisotropy)
         radiance = radiance_of(gb, packed.frags.face_id)
         if plan.background == "environment":
             rays = edge_aa.rays_at(view, proj, packed.ndc.to(radiance.dtype))
@@ -1377,6 +1351,17 @@ class _RasterMemo:
 
     def __deepcopy__(self, memo: dict) -> _RasterMemo:
         return _RasterMemo()  # a copied renderer starts empty
+
+
+def _check_group(name: str, value: object, kind: type) -> Any:
+    """``value`` if it is a ``kind`` settings object, ``kind()`` for None, else a TypeError
+    naming the argument ``name``."""
+    if value is None:
+        return kind()
+    if not isinstance(value, kind):
+        raise TypeError(f"{name}: expected a torchraster.{kind.__name__} or None, got "
+                        f"{type(value).__name__}")
+    return value
 
 
 def _same(a: bool | torch.Tensor | None, b: bool | torch.Tensor | None) -> bool:

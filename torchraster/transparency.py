@@ -12,7 +12,7 @@ and turns each layer's material alpha into a *layer opacity* ``a_k``:
 ``a_k`` is 0 where the layer is empty. Front-to-back compositing (Porter & Duff 1984,
 "over") then gives ``C = sum_k T_k a_k c_k`` with transmittance ``T_0 = 1``,
 ``T_{k+1} = T_k (1 - a_k)``; what lies behind the K-th layer is not seen (the documented
-limit: K = ``Renderer(alpha_layers=...)``), and ``T_K`` weights the background. With only
+limit: K = ``RasterSettings(alpha_layers=...)``), and ``T_K`` weights the background. With only
 ``MASK`` materials every ``a_k`` is 0 or 1, so this equals shading the first layer with
 ``a_k = 1``: :func:`first_opaque` selects it and one shading pass suffices.
 """

@@ -13,6 +13,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import torch
 from pydantic import BaseModel
@@ -35,6 +36,7 @@ from ..post import (
 )
 from ..renderer import Renderer
 from ..scene import RenderScene
+from ..settings import BackgroundSettings, RasterSettings, ShadingSettings, TextureSettings
 from ..shading.ibl import Environment
 from ..shading.lights import SH_C0, DirectionalLights, Lights, PointLights, SpotLights
 from ..shading.shadows import ShadowSettings
@@ -183,6 +185,23 @@ def build_ssr(cfg: PostConfig | SSRConfig) -> SSR:
                max_distance=c.max_distance, blur=c.blur, enabled=c.enabled)
 
 
+#: The ``Renderer`` argument of each settings group built from ``render:``.
+SETTINGS_OF_RENDER: dict[str, type] = {
+    "shading": ShadingSettings, "raster": RasterSettings, "textures": TextureSettings,
+    "background": BackgroundSettings}
+#: The ``render:`` keys that are fields of a settings group: (group, field). The others:
+#: ``resolution``, ``toon`` (the options of ``shading: toon``), ``background_image``
+#: (``BackgroundSettings.image`` and ``fit``) and the effects ``fog`` and ``dissolve``.
+RENDER_SETTINGS_KEYS: dict[str, tuple[type, str]] = {
+    "shading": (ShadingSettings, "model"), "multiscatter": (ShadingSettings, "multiscatter"),
+    **{key: (RasterSettings, key) for key in (
+        "supersample", "edge_supersample", "antialias", "cull_backfaces", "alpha_layers")},
+    "texture_filter": (TextureSettings, "filter"),
+    "max_anisotropy": (TextureSettings, "max_anisotropy"),
+    "background": (BackgroundSettings, "color"),
+}
+
+
 def build_renderer(cfg: RenderFile, with_environment: bool) -> Renderer:
     """The :class:`~torchraster.Renderer` of a config's ``render:`` (and ``post.ssao``,
     ``post.ssr``)."""
@@ -198,18 +217,17 @@ def build_renderer(cfg: RenderFile, with_environment: bool) -> Renderer:
         except (OSError, ValueError) as e:
             where = cfg.where("render", "background_image", "path")
             raise ConfigError(f"{where}: {e}") from None
-    return Renderer(r.size, shading=r.shading, shading_options=options,
-                    background_image=image,
-                    background_fit=r.background_image.fit if image is not None else "cover",
-                    dissolve=build_dissolve(r.dissolve) if r.dissolve is not None else None,
-                    supersample=r.supersample, edge_supersample=r.edge_supersample,
-                    cull_backfaces=r.cull_backfaces, background=r.background,
-                    environment_background=bool(with_environment and cfg.environment
-                                                and cfg.environment.background),
-                    texture_filter=r.texture_filter, max_anisotropy=r.max_anisotropy,
-                    ssao=ssao, ssr=ssr, alpha_layers=r.alpha_layers,
-                    antialias=r.antialias, fog=build_fog(r.fog) if r.fog is not None else None,
-                    multiscatter=r.multiscatter)
+    groups: dict[type, dict[str, Any]] = {cls: {} for cls in SETTINGS_OF_RENDER.values()}
+    for key, (cls, name) in RENDER_SETTINGS_KEYS.items():
+        groups[cls][name] = getattr(r, key)
+    groups[ShadingSettings]["options"] = options or {}
+    groups[BackgroundSettings].update(
+        environment=bool(with_environment and cfg.environment and cfg.environment.background),
+        image=image, fit=r.background_image.fit if image is not None else "cover")
+    return Renderer(
+        r.size, **{arg: cls(**groups[cls]) for arg, cls in SETTINGS_OF_RENDER.items()},
+        ssao=ssao, ssr=ssr, fog=build_fog(r.fog) if r.fog is not None else None,
+        dissolve=build_dissolve(r.dissolve) if r.dissolve is not None else None)
 
 
 def _casts(light: BaseModel) -> bool:

@@ -1,7 +1,7 @@
 """The schema of a render config: one pydantic model per YAML section.
 
 Defaults live in one place: the keyword defaults of the objects the config builds
-(``Bloom(threshold=1.0)``, ``Renderer(supersample=1)``, ...) or the named constants of their
+(``Bloom(threshold=1.0)``, ``RasterSettings(supersample=1)``, ...) or the named constants of their
 module (light defaults); the fields read them (:func:`default_of`) and the builders
 (:mod:`torchraster.config.build`) pass keyword arguments.
 
@@ -35,12 +35,20 @@ from pydantic import (
 )
 
 from ..animation import MAX_FRAMES
-from ..anisotropic import MAX_TEXTURE_ANISOTROPY
 from ..background import FITS
 from ..dissolve import MAX_OCTAVES, Dissolve
 from ..post import SSAO, SSR, AutoExposure, Bloom, DepthOfField, Exposure, ToneMap
 from ..post.tonemap import CURVES
-from ..renderer import LIT_MODELS, SHADING, Renderer
+from ..settings import (
+    LIT_MODELS,
+    SETTINGS_BOUNDS,
+    SHADING,
+    TEXTURE_FILTERS,
+    BackgroundSettings,
+    RasterSettings,
+    ShadingSettings,
+    TextureSettings,
+)
 from ..shading.ibl import SPECULAR_MODES, Environment
 from ..shading.lights import (
     DEFAULT_COLOR,
@@ -461,7 +469,7 @@ class BackgroundImageConfig(_Strict):
 
     path: FilePath = Field(description="the image file")
     fit: Literal[FITS] = Field(  # type: ignore[valid-type]
-        default_of(Renderer, "background_fit"), description="cover: fill the frame, crop "
+        default_of(BackgroundSettings, "fit"), description="cover: fill the frame, crop "
         "the overflow; contain: fit inside, bars in `render.background`; stretch: fill, "
         "aspect not kept")
 
@@ -521,6 +529,13 @@ class DissolveConfig(_Strict):
                                                         description="the noise pattern")
 
 
+def _settings_bounds(name: str) -> Any:
+    """``Field(ge=, le=)`` of a renderer settings count: the bounds the settings class
+    checks (:data:`torchraster.settings.SETTINGS_BOUNDS`; ``true`` is not 1)."""
+    lo, hi = SETTINGS_BOUNDS[name]
+    return Field(ge=lo, le=hi, strict=True)
+
+
 class RenderConfig(_Strict):
     """Image size and shading (``resolution``: ``[H, W]`` or one int for a square)."""
 
@@ -535,7 +550,7 @@ class RenderConfig(_Strict):
     toon: ToonConfig | None = Field(None, description="options of shading: toon (bands, "
                                     "rim light); refused with other shading models")
     background: Color3 = Field(
-        default_factory=lambda: list(default_of(Renderer, "background")),
+        default_factory=lambda: list(default_of(BackgroundSettings, "color")),
         description="linear RGB of empty pixels (the environment replaces it when shown)")
     background_image: BackgroundImageConfig | None = Field(
         None, description="an image behind the scene, fitted to the frame (replaces the "
@@ -543,30 +558,30 @@ class RenderConfig(_Strict):
     dissolve: DissolveConfig | None = Field(
         None, description="the dissolve effect on every surface (cut-outs, alpha_layers "
         "deep, with a glowing edge)")
-    supersample: Annotated[int, Field(ge=1, le=8)] = Field(
-        default_of(Renderer, "supersample"),
+    supersample: Annotated[int, _settings_bounds("supersample")] = Field(
+        default_of(RasterSettings, "supersample"),
         description="render at s x the resolution and box-filter down")
-    edge_supersample: Annotated[int, Field(ge=1, le=8)] = Field(
-        default_of(Renderer, "edge_supersample"),
+    edge_supersample: Annotated[int, _settings_bounds("edge_supersample")] = Field(
+        default_of(RasterSettings, "edge_supersample"),
         description="antialias edges only: the pixels on geometric and shadow edges are "
         "shaded at k x k sub-samples and box-filtered (labels stay exact; 1 = off; not with "
         "supersample > 1, antialias, ssao, ssr, fog, dissolve or MASK / BLEND materials)")
-    cull_backfaces: bool = Field(default_of(Renderer, "cull_backfaces"),
+    cull_backfaces: bool = Field(default_of(RasterSettings, "cull_backfaces"),
                                  description="drop back faces of every material")
-    texture_filter: Literal["trilinear", "anisotropic", "bilinear", "nearest"] = Field(
-        default_of(Renderer, "texture_filter"), description="anisotropic: up to "
+    texture_filter: Literal[TEXTURE_FILTERS] = Field(  # type: ignore[valid-type]
+        default_of(TextureSettings, "filter"), description="anisotropic: up to "
         "max_anisotropy trilinear probes along each pixel's footprint (sharper on steep "
         "surfaces, slower)")
-    max_anisotropy: Annotated[int, Field(ge=1, le=MAX_TEXTURE_ANISOTROPY)] = Field(
-        default_of(Renderer, "max_anisotropy"), description="the most probes a pixel of "
+    max_anisotropy: Annotated[int, _settings_bounds("max_anisotropy")] = Field(
+        default_of(TextureSettings, "max_anisotropy"), description="the most probes a pixel of "
         "texture_filter: anisotropic (refused with the other filters)")
-    alpha_layers: Annotated[int, Field(ge=1, le=16)] = Field(
-        default_of(Renderer, "alpha_layers"), description="depth layers for MASK / BLEND "
+    alpha_layers: Annotated[int, _settings_bounds("alpha_layers")] = Field(
+        default_of(RasterSettings, "alpha_layers"), description="depth layers for MASK / BLEND "
         "materials (what lies behind the nearest K is not seen through them)")
-    antialias: bool = Field(default_of(Renderer, "antialias"), description="analytic "
+    antialias: bool = Field(default_of(RasterSettings, "antialias"), description="analytic "
                             "antialiasing of silhouettes (gradients at edges)")
     fog: FogConfig | None = Field(None, description="volumetric height fog and light shafts")
-    multiscatter: bool = Field(default_of(Renderer, "multiscatter"), description="pbr: "
+    multiscatter: bool = Field(default_of(ShadingSettings, "multiscatter"), description="pbr: "
                                "multiple-scattering energy compensation of the specular and "
                                "the diffuse reduced by the specular albedo, for every light")
 

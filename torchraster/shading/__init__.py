@@ -19,13 +19,15 @@ from torchraster.shading.lights import (
     PointLights,
     SpotLights,
 )
-from torchraster.shading.models import MODELS, Surface, get_model
+from torchraster.shading.models import MODELS, get_model
+from torchraster.shading.surface import PixelSurface, Surface, pixel_surface
 
 __all__ = [
     "MIN_ROUGHNESS",
     "MODELS",
     "DirectionalLights",
     "Lights",
+    "PixelSurface",
     "PointLights",
     "SpotLights",
     "Surface",
@@ -34,6 +36,7 @@ __all__ = [
     "f_schlick",
     "fd_lambert",
     "get_model",
+    "pixel_surface",
     "shade",
     "v_smith_ggx_correlated",
 ]

@@ -18,7 +18,15 @@ import math
 
 import torch
 
-from torchraster.numerics import compute_dtype, finish_low_precision
+from torchraster.numerics import (  # noqa: F401 (safe_normalize: re-exported)
+    NORMALIZE_EPS,
+    compute_dtype,
+    diffuse_color,
+    dot,
+    finish_low_precision,
+    safe_normalize,
+    specular_f0,
+)
 
 #: Smallest perceptual roughness (alpha = 0.045**2 ~ 2.0e-3). Filament's value: below it
 #: the GGX peak ``1 / (pi * alpha**2)`` (~7.8e4 here) grows past what float16 can hold,
@@ -31,13 +39,6 @@ MIN_ROUGHNESS: float = 0.045
 #: |n.v|). Keeps ``V`` finite at grazing and back-facing angles; the cosine factor that
 #: multiplies the BRDF is clamped at 0, not at this floor, so grazing light still gives 0.
 MIN_COS: float = 1e-4
-
-#: Squared length below which a vector is treated as zero by :func:`safe_normalize`
-#: (|x| < 1e-6). The result is then the zero vector, with zero (finite) gradient.
-NORMALIZE_EPS: float = 1e-12
-
-#: Dielectric reflectance at normal incidence (4 %, IOR 1.5), used for f0 when metallic=0.
-DIELECTRIC_F0: float = 0.04
 
 Scalar = float | torch.Tensor
 
@@ -82,25 +83,6 @@ def _check_vector(name: str, x: object) -> torch.Tensor:
             f"{name}: expected xyz on dim -3, e.g. (B, 3, H, W), got {tuple(x.shape)}"
         )
     return x
-
-
-def dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Dot product over the xyz axis (dim -3): ``(..., 3, H, W) -> (..., 1, H, W)``."""
-    return (a * b).sum(dim=-3, keepdim=True)
-
-
-def safe_normalize(x: torch.Tensor, dim: int = -3) -> torch.Tensor:
-    """Unit vector along ``dim``; vectors shorter than 1e-6 map to 0 with zero gradient.
-
-    Uses the "double where" trick so neither the value nor the gradient is ever NaN/Inf.
-    Any shape; float16 / bfloat16 are normalised in float32 and cast back.
-    """
-    dtype = x.dtype
-    xc = x.to(compute_dtype(x))
-    sq = (xc * xc).sum(dim=dim, keepdim=True)
-    ok = sq > NORMALIZE_EPS
-    inv = torch.where(ok, torch.rsqrt(torch.where(ok, sq, 1.0)), 0.0)
-    return (xc * inv).to(dtype)
 
 
 def _alpha(roughness: torch.Tensor) -> torch.Tensor:
@@ -261,13 +243,13 @@ def cook_torrance(
     n_dot_h = (n_dot_l + n_dot_v) * inv_len
     v_dot_h = 0.5 * len2 * inv_len
 
-    f0 = DIELECTRIC_F0 * (1.0 - metal) + base * metal
+    f0 = specular_f0(base, metal)
     spec = (
         d_ggx(n_dot_h, rough)
         * v_smith_ggx_correlated(n_dot_v, n_dot_l, rough)
         * f_schlick(v_dot_h, f0)
     )
-    f = (1.0 - metal) * base * fd_lambert() + spec
+    f = diffuse_color(base, metal) * fd_lambert() + spec
     if include_cosine:
         f = f * n_dot_l.clamp(0.0, 1.0)
     return finish_low_precision(f, out)

@@ -51,12 +51,14 @@ from torch.utils.checkpoint import checkpoint
 
 from torchraster._validate import check_radiance, check_tensor
 from torchraster.numerics import (
+    DIELECTRIC_F0,
     compute_dtype,
     diffuse_color,
     dot,
     finish_low_precision,
     grid_sample,
     safe_normalize,
+    specular_f0,
 )
 from torchraster.shading.brdf import MIN_ROUGHNESS, d_ggx, v_smith_ggx_correlated
 from torchraster.shading.energy import MIN_DFG_ALBEDO, energy_terms
@@ -115,6 +117,11 @@ __all__ = [
 #: IBL specular methods: the split-sum prefiltered chain (one lookup a pixel) or per-pixel
 #: filtered importance sampling of the GGX lobe (:func:`specular_importance`).
 SPECULAR_MODES: tuple[str, ...] = ("split_sum", "fitted", "importance")
+
+#: Default size and samples of the split-sum DFG table :func:`shade_ibl` reads (coarser than
+#: the lighting pass's ``energy.DFG_LUT_SIZE``: its error hides under the prefiltered map's).
+IBL_LUT_SIZE: int = 16
+IBL_LUT_SAMPLES: int = 32
 
 #: Floor on n.v (Filament clamps NoV to 1e-4): keeps the DFG lookup and the reflection
 #: well defined at grazing and back-facing views.
@@ -1252,9 +1259,9 @@ def shade_ibl(
     env: Environment,
     *,
     multiscatter: bool = True,
-    f0_dielectric: float = 0.04,
-    lut_size: int = 16,
-    lut_samples: int = 32,
+    f0_dielectric: float = DIELECTRIC_F0,
+    lut_size: int = IBL_LUT_SIZE,
+    lut_samples: int = IBL_LUT_SAMPLES,
     specular: str | None = None,
     importance_samples: int | None = None,
     mask: torch.Tensor | None = None,
@@ -1330,7 +1337,7 @@ def shade_ibl(
     rough = roughness.clamp(0.0, 1.0)
     metal = metallic.clamp(0.0, 1.0)
 
-    f0 = f0_dielectric * (1.0 - metal) + albedo * metal  # specular_f0 with a custom f0
+    f0 = specular_f0(albedo, metal, f0_dielectric)
     f90 = (f0.mean(1, keepdim=True) * (3 * 50.0 * 0.33)).clamp(0.0, 1.0)  # dot(f0, 16.5)
     lut = dfg_lut(lut_size, lut_samples, device=normal.device, dtype=normal.dtype)
     a, bias = lookup_dfg(lut, n_dot_v, rough)

@@ -33,20 +33,18 @@ from torchraster.gbuffer import GBuffer
 from torchraster.numerics import (
     LOW_PRECISION,
     diffuse_color,
-    dot,
     finish_low_precision,
     safe_normalize,
     specular_f0,
 )
 from torchraster.shading.brdf import (
-    DIELECTRIC_F0,
     MIN_COS,
     MIN_ROUGHNESS,
     NORMALIZE_EPS,
     ggx_lobe,
     schlick_weight,
 )
-from torchraster.shading.energy import ENERGY_LUT_SAMPLES, ENERGY_LUT_SIZE, energy_terms
+from torchraster.shading.energy import DFG_LUT_SAMPLES, DFG_LUT_SIZE, energy_terms
 from torchraster.shading.ibl import dfg_lut, lookup_dfg
 from torchraster.shading.lights import (
     MIN_LIGHT_DISTANCE,
@@ -61,8 +59,9 @@ from torchraster.shading.lights import (
     spot_attenuation,
     spot_incidence,
 )
-from torchraster.shading.models import ShadingModel, Surface, get_model
+from torchraster.shading.models import ShadingModel, get_model
 from torchraster.shading.models import cook_torrance as _cook_torrance_model
+from torchraster.shading.surface import PixelSurface, Surface, pixel_surface
 
 #: Pixel-lights (B * L_chunk * H * W) evaluated at once. 2**22 keeps one float32 RGB
 #: temporary at 48 MB; at 512x512, batch 4 that is 4 lights per chunk.
@@ -81,22 +80,14 @@ GRAD_CHUNK_FACTOR: int = 8
 #: above it, evaluating all of them is cheaper than gathering the reached ones.
 SPARSE_FRACTION: float = 0.4
 
-#: Size and sample count of the split-sum DFG table (built by ``ibl.dfg_lut``, the same
-#: function as image-based lighting) for the ambient light's specular term. Finer than
-#: ``shade_ibl``'s default 16 x 32: the ambient specular has no prefiltered-map error to
-#: hide the table's, and 32 x 96 brings its mean error from 0.58 % to 0.13 %
-#: (docs/benchmarks.md, "DFG LUT").
-DFG_LUT_SIZE: int = 32
-DFG_LUT_SAMPLES: int = 96
-
 #: ``visibility(kind, lights_slice) -> (B, L, 1, H, W) | None``: the fraction of each light
 #: of ``kind`` ("directional", "point" or "spot") in ``lights_slice`` that reaches each
 #: pixel (shadows); None = all of it.
 VisibilityHook = Callable[[str, slice], "torch.Tensor | None"]
 
-IBLHook = Callable[
-    [torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor
-]
+#: ``ibl(surface) -> (B, 3, H, W)``: radiance from an environment at each pixel of the
+#: :class:`~torchraster.shading.surface.PixelSurface` (before AO).
+IBLHook = Callable[[PixelSurface], torch.Tensor]
 
 def env_brdf(
     f0: torch.Tensor, roughness: torch.Tensor, n_dot_v: torch.Tensor
@@ -202,11 +193,10 @@ def cook_torrance_lights(
     a = r * r
     a2 = a * a
     lam_v = torch.sqrt(torch.addcmul(a2, nv * nv, 1.0 - a2))
-    f0 = DIELECTRIC_F0 * (1.0 - metallic) + albedo * metallic
-    kd = (1.0 - metallic) * albedo
+    f0, kd = specular_f0(albedo, metallic), diffuse_color(albedo, metallic)
     ms = None
     if multiscatter:  # Kulla-Conty / Fdez-Aguera energy terms (shading/energy.py)
-        lut = dfg_lut(ENERGY_LUT_SIZE, ENERGY_LUT_SAMPLES, device=f0.device, dtype=f0.dtype)
+        lut = dfg_lut(DFG_LUT_SIZE, DFG_LUT_SAMPLES, device=f0.device, dtype=f0.dtype)
         ms, kd_scale = energy_terms(f0, nv, r, lut)
         kd = kd * kd_scale
     color = lights.color[item] * lights.intensity[item][:, None]  # (L, 3)
@@ -386,10 +376,10 @@ def shade(
             or None (no punctual or ambient light).
         model: name in :data:`~torchraster.shading.models.MODELS` or a callable
             ``model(n, v, l, surface)`` (see :mod:`torchraster.shading.models`).
-        ibl: optional ``ibl(n, v, albedo, metallic, roughness) -> (B, 3, H, W)`` radiance
-            from an environment (before AO; unit ``n`` and ``v`` (towards the eye)
-            ``(B, 3, H, W)``), e.g. ``lambda n, v, a, m, r: shade_ibl(n, v, a, m, r,
-            None, env)``.
+        ibl: optional ``ibl(surface) -> (B, 3, H, W)`` radiance from an environment (before
+            AO), given the frame's :class:`~torchraster.shading.surface.PixelSurface` (unit
+            ``n``, ``v`` towards the eye, material, f0, ...), e.g. ``lambda s:
+            shade_ibl(s.n, s.v, s.albedo, s.metallic, s.roughness, None, env)``.
         visibility: optional ``visibility(kind, lights) -> (B, L, 1, H, W)`` (or None for
             unshadowed), called per chunk of lights of ``kind`` (``"directional"``,
             ``"point"``, ``"spot"``) with the slice of light indices: the fraction of each
@@ -471,11 +461,12 @@ def shade(
     # the full-frame tensors are built only for other models, ambient light and IBL.
     fused = shading_model is _cook_torrance_model
     full_frame = (kinds and not fused) or lights.ambient is not None or ibl is not None
-    if full_frame:
+    if full_frame:  # the per-pixel surface, built once for every light, ambient and IBL
         pos, nrm, base, metal, rough = (prep(t) for t in (position, normal, albedo, metallic,
                                                            roughness))
-        n = safe_normalize(nrm)
-        v = safe_normalize(camera_position.to(dt)[:, :, None, None] - pos)
+        surf = pixel_surface(safe_normalize(nrm),
+                             safe_normalize(camera_position.to(dt)[:, :, None, None] - pos),
+                             albedo=base, metallic=metal, roughness=rough)
     radiance = torch.zeros(b, 3, h, w, device=dev, dtype=dt)
 
     # Direct light: lights as a tensor dimension, in chunks.
@@ -510,9 +501,10 @@ def shade(
             if fused:
                 _fused_direct(kind, chunk, packed, vis, use_ckpt, acc, multiscatter)
                 continue
-            surface = Surface(albedo=base[:, None], metallic=metal[:, None],
-                              roughness=rough[:, None])
-            args = (shading_model, kind, chunk, pos, n[:, None], v[:, None], surface, vis)
+            surface = Surface(albedo=surf.albedo[:, None], metallic=surf.metallic[:, None],
+                              roughness=surf.roughness[:, None])
+            args = (shading_model, kind, chunk, pos, surf.n[:, None], surf.v[:, None], surface,
+                    vis)
             if use_ckpt:
                 radiance = radiance + checkpoint(_direct, *args, use_reentrant=False)
             else:
@@ -523,20 +515,18 @@ def shade(
     # Ambient (SH) and image-based light, scaled by AO.
     indirect = None
     if lights.ambient is not None:
-        n_dot_v = dot(n, v)
-        r = 2.0 * n_dot_v * n - v  # reflect(-v, n)
-        e_n = sh_irradiance(lights.ambient, n).clamp_min(0.0)
+        r = 2.0 * surf.n_dot_v * surf.n - surf.v  # reflect(-v, n)
+        e_n = sh_irradiance(lights.ambient, surf.n).clamp_min(0.0)
         e_r = sh_irradiance(lights.ambient, r).clamp_min(0.0)
-        f0 = specular_f0(base, metal)
-        kd, spec = diffuse_color(base, metal) * e_n, env_brdf(f0, rough, n_dot_v) * e_r
+        kd = surf.diffuse * e_n
+        spec = env_brdf(surf.f0, surf.roughness, surf.n_dot_v) * e_r
         if multiscatter:  # the same energy terms as punctual lights (shading/energy.py)
-            lut = dfg_lut(ENERGY_LUT_SIZE, ENERGY_LUT_SAMPLES, device=dev, dtype=dt)
-            ms, kd_scale = energy_terms(f0, n_dot_v.clamp(MIN_COS, 1.0),
-                                        rough.clamp(MIN_ROUGHNESS, 1.0), lut)
+            ms, kd_scale = surf.energy(dfg_lut(DFG_LUT_SIZE, DFG_LUT_SAMPLES,
+                                               device=dev, dtype=dt))
             kd, spec = kd * kd_scale, spec * ms
         indirect = (kd + spec) / torch.pi
     if ibl is not None:
-        env = ibl(n, v, base, metal, rough)
+        env = ibl(surf)
         check_tensor("ibl(...) result", env, (b, 3, h, w), floating=True)
         env = env.to(dt)
         indirect = env if indirect is None else indirect + env

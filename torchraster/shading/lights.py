@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import torch
 
 from torchraster._validate import check_radiance, check_tensor
-from torchraster.shading.brdf import safe_normalize
+from torchraster.numerics import safe_normalize
 from torchraster.shading.shadows import ShadowSettings
 
 #: Closest distance (m) a point / spot light is evaluated at: ``E = I / max(d^2, 1e-4)``

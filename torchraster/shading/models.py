@@ -26,7 +26,6 @@ import functools
 import inspect
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import torch
 
@@ -35,6 +34,7 @@ from torchraster.shading.brdf import MIN_ROUGHNESS
 from torchraster.shading.brdf import (
     cook_torrance as _cook_torrance_brdf,
 )
+from torchraster.shading.surface import Surface
 
 #: Number of diffuse bands of the toon model.
 TOON_BANDS: int = 3
@@ -48,21 +48,6 @@ TOON_SPECULAR: float = 0.6
 
 #: Default ``rim_width`` of the toon model: the rim covers ``n.v < TOON_RIM_WIDTH``.
 TOON_RIM_WIDTH: float = 0.3
-
-
-@dataclass(frozen=True)
-class Surface:
-    """Per-pixel material inputs of a shading model (metallic-roughness, glTF semantics).
-
-    Attributes:
-        albedo: base colour, linear RGB in [0, 1], ``(..., 3, H, W)``.
-        metallic: in [0, 1], ``(..., 1, H, W)``.
-        roughness: perceptual roughness in [0, 1], ``(..., 1, H, W)``.
-    """
-
-    albedo: torch.Tensor
-    metallic: torch.Tensor
-    roughness: torch.Tensor
 
 
 ShadingModel = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, Surface], torch.Tensor]
