@@ -708,10 +708,10 @@ def scene_half(gen: torch.Generator, c: Counter) -> None:
     antialias = _chance(gen, 0.5)
     raster = tr.RasterSettings(antialias=antialias,
                                edge_supersample=1 if antialias else _pick(gen, (1, 2, 3)))
-    textures = tr.TextureSettings(
+    filtering = tr.TextureSettings(
         filter=_pick(gen, ("trilinear", "bilinear", "nearest", "anisotropic")))
     raster = dataclasses.replace(raster, max_batch=_pick(gen, (None, 1)))  # chunked batches too
-    renderer = tr.Renderer(res, shadows=settings, raster=raster, textures=textures)
+    renderer = tr.Renderer(res, shadows=settings, raster=raster, textures=filtering)
     if renderer.raster_settings.max_batch is not None:  # two views, rendered one at a time
         view = torch.cat([view, view])
     out = renderer(scene, view, proj, lights)

@@ -2,8 +2,9 @@
 
 ``Renderer(raster=RasterSettings(edge_supersample=k))`` renders the frame at 1x as usual, then:
 
-1. rasterizes the scene once more at ``k x`` the resolution (visibility only is used
-   beyond the edge pixels);
+1. rasterizes the scene once more at ``k x`` the resolution: the visibility pass over the
+   whole ``k x`` frame, the barycentric pass only over the sub-samples of the edge pixels
+   (``rasterize(select=...)``);
 2. flags *edge pixels* (:func:`geometric_edges`, :func:`contrast_edges`): pixels whose
    ``k^2`` sub-samples see faces that share no vertex (occlusion edges, creases of meshes
    with split vertices, object boundaries), faces of different materials, or coverage and
@@ -18,7 +19,7 @@
 Labels and every G-buffer channel are the 1x frame's (exact, never blended); ``image`` and
 ``alpha`` are antialiased. With every pixel flagged the result is ``supersample=k``'s image.
 
-The second raster is the pass's main cost (it grows with ``k^2``). Resolving the
+The second raster's visibility pass is the pass's main cost (it grows with ``k^2``). Resolving the
 sub-samples against the faces seen at the 3 x 3 neighbourhood's pixel centres instead
 (no second raster) was tried: it misses the sliver faces of finely tessellated
 silhouettes and distant objects (holes; PSNR below the 1x frame's on a field of spheres).
@@ -101,7 +102,9 @@ def geometric_edges(face_id_k: torch.Tensor, faces: torch.Tensor, k: int,
     """
     b, hk, wk = face_id_k.shape
     blocks = face_id_k.view(b, hk // k, k, wk // k, k)
-    mixed = blocks.amax((2, 4)) != blocks.amin((2, 4))  # (B, H, W)
+    # any sub-sample unlike the block's first: compare and reduce the bools (3-4x faster
+    # than max != min over the strided block axes of int64 ids)
+    mixed = (blocks != blocks[:, :, :1, :, :1]).any(4).any(2)  # (B, H, W)
     out = torch.zeros_like(mixed)
     where = mixed.nonzero(as_tuple=True)
     if where[0].numel() == 0:

@@ -1077,21 +1077,28 @@ class Renderer(nn.Module):
         ``radiance_of`` and put each pixel's mean in ``image`` / ``alpha``."""
         k = plan.edge_supersample
         h, w = plan.resolution
+        found: list[torch.Tensor] = []
+
+        def edge_subsamples(face_id_k: torch.Tensor) -> torch.Tensor:
+            """The sub-samples of the edge pixels (the rest skip the barycentric pass)."""
+            edge = edge_aa.geometric_edges(face_id_k, scene.faces, k,
+                                           scene.face_material if len(scene.materials) > 1
+                                           else None)
+            if hook is not None:  # shadow edges: the 1x visibility of every shadowed light
+                vis = [v for kind in ("directional", "point", "spot")
+                       if (v := hook(kind, slice(None))) is not None]
+                if vis:
+                    edge |= edge_aa.contrast_edges(torch.cat(vis, 1).flatten(1, 2),
+                                                   edge_aa.CONTRAST_THRESHOLD)
+            elif edge_aa.CONTRAST_THRESHOLD < 0:
+                edge |= edge_aa.contrast_edges(image, edge_aa.CONTRAST_THRESHOLD)
+            found.append(edge)
+            return edge.repeat_interleave(k, 1).repeat_interleave(k, 2)
+
         frags_k = rasterize(clip, scene.faces, (h * k, w * k),
                             cull_backfaces=_cull_mask(plan, scene), face_ranges=face_ranges,
-                            derivatives=plan.derivatives)
-        edge = edge_aa.geometric_edges(frags_k.face_id, scene.faces, k,
-                                       scene.face_material if len(scene.materials) > 1
-                                       else None)
-        if hook is not None:  # shadow edges: the 1x visibility of every shadowed light
-            vis = [v for kind in ("directional", "point", "spot")
-                   if (v := hook(kind, slice(None))) is not None]
-            if vis:
-                edge |= edge_aa.contrast_edges(torch.cat(vis, 1).flatten(1, 2),
-                                               edge_aa.CONTRAST_THRESHOLD)
-        elif edge_aa.CONTRAST_THRESHOLD < 0:
-            edge |= edge_aa.contrast_edges(image, edge_aa.CONTRAST_THRESHOLD)
-        packed = edge_aa.pack_subsamples(frags_k, edge, k)
+                            derivatives=plan.derivatives, select=edge_subsamples)
+        packed = edge_aa.pack_subsamples(frags_k, found[0], k)
         count = packed.count
         plan = replace(plan, edge_pixels=count)
         if count == 0:

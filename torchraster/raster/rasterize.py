@@ -20,7 +20,7 @@ The soft rasterizer (``soft.py``) reuses pass 1 with a wider :class:`Coverage`.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import torch
 
@@ -197,6 +197,7 @@ def rasterize(
     *,
     derivatives: bool = False,
     layers: int = 1,
+    select: Callable[[torch.Tensor], torch.Tensor] | None = None,
     tile: int = DEFAULT_TILE,
     memory_budget: int = DEFAULT_MEMORY_BUDGET,
 ) -> Fragments:
@@ -224,6 +225,12 @@ def rasterize(
             whose resolve key (depth, then face index) is the smallest one strictly greater
             than layer k - 1's: the k-th nearest distinct face covering the pixel. Exact
             depth ties are ordered by face index; a face covering a pixel counts once.
+        select: optional ``select(face_id) -> keep``: given the ``(B, H, W)`` int64 face ids
+            of the nearest surface (-1 empty), a ``(B, H, W)`` bool of the pixels whose
+            barycentrics (and depth, derivatives) are wanted; the others come out empty
+            (``face_id`` -1). The barycentric pass then costs the kept pixels only (edge
+            antialiasing keeps the sub-samples of a few pixels of a large raster).
+            ``layers`` must be 1.
         tile: tile size in pixels of the binning of large triangles (and the largest block
             of small ones).
         memory_budget: bytes of temporaries per chunk; peak memory is about this plus the
@@ -253,9 +260,18 @@ def rasterize(
     # half precision: barycentrics and their backward (1 / sum(l), per-pixel products)
     # overflow float16; evaluate in float32, gradients back to clip_pos saturated
     clip_pos = to_compute(clip_pos)
+    if select is not None and layers != 1:
+        raise ValueError(f"select: needs layers=1, got layers={layers}")
     keys = resolve_keys(clip_pos, faces, (h, w), cull_backfaces, face_ranges, int(tile),
                         memory_budget, BYTES_PER_PIXEL * layers, layers=layers)
     b = clip_pos.shape[0]
+    if select is not None:  # drop the pixels not selected before the barycentric pass
+        nearest = keys[0].view(b, h, w)
+        keep = select((nearest << 32) >> 32)  # the face ids (-1 for EMPTY_KEY)
+        check_tensor("select(face_id) result", keep, (b, h, w))
+        if keep.dtype != torch.bool:
+            raise TypeError(f"select(face_id) result: expected a bool tensor, got {keep.dtype}")
+        nearest.masked_fill_(~keep, EMPTY_KEY)
     frags = [_fragments_from_keys(clip_pos, faces, k, (b, h, w), derivatives) for k in keys]
     frags[0].deeper = tuple(frags[1:])
     return frags[0]
