@@ -12,7 +12,8 @@ roughness 0.8 and a light of 4 cd at (-1.5, 2.0, 1.0), Adam recovers
 * the light's position (3) and intensity (through exp),
 
 by minimising the mean squared difference of the sRGB-encoded renders of
-``tr.Renderer(shading="pbr", antialias=True, supersample=2)``. The images are compared
+``tr.Renderer(shading="pbr", raster=tr.RasterSettings(antialias=True, supersample=2))``.
+The images are compared
 with the PSNR of the sRGB-encoded image in [0, 1] over the pixels the object covers in the
 target (background excluded, so the figure is not inflated by black pixels), also without
 the silhouette's pixels ("interior"); the true parameters through the same renderer give

@@ -7,7 +7,8 @@ in a random direction, and the pose is recovered by gradient descent on the silh
 
     loss = sum over pyramid levels l of mean((pool_l(alpha) - pool_l(target)) ** 2)
 
-``alpha`` is ``Renderer(..., antialias=True)(...).alpha``: analytic antialiasing makes the
+``alpha`` is ``Renderer(..., raster=RasterSettings(antialias=True))(...).alpha``: analytic
+antialiasing makes the
 coverage a continuous function of the vertices' clip positions, hence of the camera
 (with ``antialias=False`` the gradient of this loss is exactly zero). The target
 silhouettes are rendered at 4x supersampling without antialiasing, i.e. the pixel's true

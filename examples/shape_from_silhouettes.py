@@ -9,7 +9,8 @@ shading term, the same views lit by a headlight. An icosphere is then deformed b
          + w_shade * mean((image - target_image) ** 2)
          + w_lap * mean(|L x| ** 2) + w_edge * mean((|e| / mean|e| - 1) ** 2)
 
-``alpha`` and ``image`` come from ``tr.Renderer(..., antialias=True)`` (headlight shading,
+``alpha`` and ``image`` come from ``tr.Renderer(..., raster=tr.RasterSettings(antialias=True))``
+(headlight shading,
 normals recomputed from the deformed positions ``x``); ``L`` is the uniform Laplacian
 ``I - D^-1 A`` (a sparse torch matrix from trimesh's unique edges), ``e`` the edges. The
 positions are parametrised as ``x = (I + lambda (D - A))^-1 u`` ("large steps", Nicolet et
