@@ -22,6 +22,7 @@ from torchraster.post.ssr import (
     specular_weight,
     trace_reflections,
 )
+from torchraster.shading.surface import Surface
 
 N = 48
 F_PX = N / 2 / math.tan(math.radians(30))  # 60 degree field of view
@@ -123,8 +124,9 @@ def test_mirror_plane_matches_the_mirrored_camera_render() -> None:
                                                 "albedo", "mask"])
     g = out.gbuffer
     n_view = torch.einsum("ij,bjhw->bihw", view[0, :3, :3], g["normal"])
-    maps = SSR(edge_fade=0.0)(out.image, g["depth"], n_view, g["roughness"], g["metallic"],
-                              g["albedo"], projection=proj, return_maps=True)
+    maps = SSR(edge_fade=0.0)(out.image, g["depth"], n_view,
+            Surface(albedo=g["albedo"], metallic=g["metallic"], roughness=g["roughness"]),
+            projection=proj, return_maps=True)
     ref_scene, ref_view, _ = _quad_scene(mirror_view=True)
     ref = renderer(ref_scene, ref_view, proj)
     floor = g["roughness"][0, 0] == 0
@@ -147,7 +149,9 @@ def test_composite_replaces_the_fallback_where_it_hits() -> None:
     metallic = torch.ones_like(rough)
     fallback = torch.rand_like(image) * 0.1
     ssr = SSR(edge_fade=0.0, thickness=0.5)
-    maps = ssr(image, depth, normal, rough, metallic, albedo, intrinsics=K, fallback=fallback,
+    maps = ssr(image, depth, normal,
+            Surface(albedo=albedo, metallic=metallic, roughness=rough),
+            intrinsics=K, fallback=fallback,
                return_maps=True)
     expect = image + maps.confidence * (maps.weight * maps.reflection - fallback)
     torch.testing.assert_close(maps.image, expect)
@@ -162,7 +166,9 @@ def test_composite_replaces_the_fallback_where_it_hits() -> None:
                                (w * maps.reflection)[:, :, hit])
     # roughness 0, f0 = 0.9: Schlick's Fresnel between f0 and f90 = 1
     assert 0.89 < float(maps.weight[:, :, hit].min()) and float(maps.weight.max()) <= 1.0
-    out = ssr(image, depth, normal, rough, metallic, albedo, intrinsics=K)
+    out = ssr(image, depth, normal,
+            Surface(albedo=albedo, metallic=metallic, roughness=rough),
+            intrinsics=K)
     torch.testing.assert_close(out, image + maps.confidence * maps.weight * maps.reflection)
 
 
@@ -218,7 +224,9 @@ def test_stress_inputs_are_finite(case: str) -> None:
     albedo = torch.rand(b, 3, h, w, dtype=torch.float64)
     metallic = torch.rand(b, 1, h, w, dtype=torch.float64)
     k = torch.tensor([10.0, 10.0, (w - 1) / 2, (h - 1) / 2], dtype=torch.float64)
-    maps = SSR()(image, depth, normal, rough, metallic, albedo, intrinsics=k, return_maps=True)
+    maps = SSR()(image, depth, normal,
+            Surface(albedo=albedo, metallic=metallic, roughness=rough),
+            intrinsics=k, return_maps=True)
     for t in maps:
         assert bool(torch.isfinite(t).all())
     maps.image.sum().backward()
@@ -237,11 +245,15 @@ def test_gradcheck_image_and_fallback() -> None:
     metal = torch.ones_like(rgh)
     k = K - torch.tensor([0.0, 0.0, 20.0, 30.0], dtype=torch.float64)
     ssr = SSR(edge_fade=0.3, thickness=0.5)
-    conf = ssr(img, dep, nrm, rgh, metal, albedo, intrinsics=k, return_maps=True).confidence
+    conf = ssr(img, dep, nrm,
+            Surface(albedo=albedo, metallic=metal, roughness=rgh),
+            intrinsics=k, return_maps=True).confidence
     assert float(conf.max()) > 0  # some pixels reflect others of the crop
 
     def f(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        return ssr(x, dep, nrm, rgh, metal, albedo, intrinsics=k, fallback=y)
+        return ssr(x, dep, nrm,
+                Surface(albedo=albedo, metallic=metal, roughness=rgh),
+                intrinsics=k, fallback=y)
 
     assert torch.autograd.gradcheck(f, (img, fb), eps=1e-6, atol=1e-6, fast_mode=True)
 
@@ -262,7 +274,9 @@ def test_gradcheck_roughness_through_the_cone_blur_and_fade() -> None:
     ssr = SSR(edge_fade=0.3, thickness=0.5)
 
     def maps(r: torch.Tensor) -> SSRMaps:
-        return ssr(img, dep, nrm, r, metal, albedo, intrinsics=k, fallback=fb, return_maps=True)
+        return ssr(img, dep, nrm,
+                Surface(albedo=albedo, metallic=metal, roughness=r),
+                intrinsics=k, fallback=fb, return_maps=True)
 
     m = maps(rgh)
     fading = (m.confidence > 0) & (m.confidence < 1) & (rgh > 0.45)
@@ -287,15 +301,25 @@ def test_disabled_and_bad_args() -> None:
     img = torch.rand(1, 3, 4, 4)
     d, n, r = torch.ones(1, 1, 4, 4), torch.zeros(1, 3, 4, 4), torch.zeros(1, 1, 4, 4)
     k = torch.tensor([4.0, 4.0, 1.5, 1.5])
-    assert SSR(enabled=False)(img, d, n, r, r, img) is img
+    assert SSR(enabled=False)(img, d, n, Surface(albedo=img, metallic=r, roughness=r)) is img
     with pytest.raises(ValueError, match="projection, intrinsics"):
-        SSR()(img, d, n, r, r, img)
+        SSR()(img, d, n, Surface(albedo=img, metallic=r, roughness=r))
     with pytest.raises(ValueError, match="normals"):
-        SSR()(img, d, torch.zeros(1, 3, 4, 5), r, r, img, intrinsics=k)
+        SSR()(img, d, torch.zeros(1, 3, 4, 5),
+                Surface(albedo=img, metallic=r, roughness=r),
+                intrinsics=k)
     with pytest.raises(ValueError, match="depth: contains NaN"):
-        SSR()(img, torch.full_like(d, math.nan), n, r, r, img, intrinsics=k)
+        SSR()(img, torch.full_like(d, math.nan), n,
+                Surface(albedo=img, metallic=r, roughness=r),
+                intrinsics=k)
     with pytest.raises(ValueError, match="fallback"):
-        SSR()(img, d, n, r, r, img, intrinsics=k, fallback=torch.zeros(1, 3, 2, 2))
+        SSR()(img, d, n,
+                Surface(albedo=img, metallic=r, roughness=r),
+                intrinsics=k, fallback=torch.zeros(1, 3, 2, 2))
+    with pytest.raises(TypeError, match="^surface: expected a torchraster.shading.Surface"):
+        SSR()(img, d, n, r, intrinsics=k)  # the former positional roughness
+    with pytest.raises(ValueError, match="^surface.roughness"):
+        SSR()(img, d, n, Surface(albedo=img, metallic=r, roughness=img), intrinsics=k)
     for kw, name in (({"max_steps": 0}, "max_steps"), ({"thickness": 0.0}, "thickness"),
                      ({"max_roughness": 1.5}, "max_roughness"), ({"edge_fade": -1}, "edge_fade"),
                      ({"refine_steps": -1}, "refine_steps"), ({"max_distance": 0}, "max_distance")):
@@ -379,6 +403,124 @@ def test_steps_used_stay_within_the_geometric_bound(case: str) -> None:
     for a, b in zip(far, at_bound, strict=True):
         assert torch.equal(a, b)
 
+
+
+# ------------------------------------------------------------------ packed, hierarchical march
+def test_min_max_chain_cells_hold_the_depth_range_of_their_pixels() -> None:
+    """The padded chain read at the march's arithmetic index (item b, level l, cell (cu,
+    cv): ``2 ph pw (b + 1 - 2^-l) + cv pw_l + cu``) holds for every cell the min and max
+    valid depth of its pixels (brute force; +inf / -inf where it has none), on a frame
+    padded on both axes."""
+    from torchraster.post.ssr import _min_max_chain, _top_cell
+
+    gen = torch.Generator().manual_seed(0)
+    b, h, w = 2, 21, 38
+    depth = torch.rand(b, 1, h, w, generator=gen, dtype=torch.float64) * 5 + 0.5
+    depth[torch.rand(b, 1, h, w, generator=gen) < 0.3] = math.inf
+    depth[1, 0, 16:, :] = math.inf  # a band of whole empty cells
+    top = _top_cell(h, w)
+    cmin, cmax, ph, pw = _min_max_chain(depth, torch.isfinite(depth), top)
+    assert (ph % top, pw % top) == (0, 0) and ph > h and pw > w and ph * pw <= 1.5 * h * w
+    assert cmin.numel() == b * 2 * ph * pw
+    size = 1
+    while size <= top:
+        phl, pwl = ph // size, pw // size
+        for bb in range(b):
+            off = 2 * ph * pw * (bb + 1) - 2 * ph * pw // size
+            for cv in range(phl):
+                for cu in range(pwl):
+                    cell = depth[bb, 0, cv * size:(cv + 1) * size, cu * size:(cu + 1) * size]
+                    vals = cell[torch.isfinite(cell)]
+                    at = off + cv * pwl + cu
+                    lo, hi = (vals.min(), vals.max()) if vals.numel() else (math.inf, -math.inf)
+                    assert float(cmin[at]) == float(lo) and float(cmax[at]) == float(hi)
+        size *= 2
+
+
+def _random_frames(b: int = 2, h: int = 20, w: int = 28):
+    gen = torch.Generator().manual_seed(3)
+    image = torch.rand(b, 3, h, w, generator=gen)
+    depth = torch.rand(b, 1, h, w, generator=gen) * 4 + 0.5
+    depth[:, :, :3] = math.inf  # empty rows: rays leave through them
+    normal = torch.randn(b, 3, h, w, generator=gen)
+    rough = torch.rand(b, 1, h, w, generator=gen) * 0.5
+    k = torch.tensor([12.0, 12.0, (w - 1) / 2, (h - 1) / 2])
+    return image, depth, normal, rough, k
+
+
+@pytest.mark.parametrize("case", ["floor-wall", "quad", "random"])
+def test_hierarchical_march_finds_the_hits_of_a_pixel_by_pixel_walk(
+        case: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """With a 1-pixel top cell the march is a plain walk through every pixel a ray crosses;
+    the min-max hierarchy only skips cells no ray can hit in (and the part of a cell in
+    front of its nearest depth), so it must find the same hits: the same hit pixels and
+    reflections equal to the bisection's resolution."""
+    from torchraster.post import ssr as ssr_module
+
+    if case == "floor-wall":
+        image, depth, normal, rough, *_ = _floor_and_wall()
+        k = K
+    elif case == "quad":
+        image, depth, normal, rough, k = _quad_gbuffer(40)
+    else:
+        image, depth, normal, rough, k = _random_frames()
+    kw = {"thickness": 0.5, "max_steps": MAX_STEPS, "edge_fade": 0.0}
+    stats_h: dict = {}
+    refl_h, conf_h = trace_reflections(image, depth, normal, rough, k, stats=stats_h, **kw)
+    monkeypatch.setattr(ssr_module, "_top_cell", lambda h, w: 1)
+    stats_p: dict = {}
+    refl_p, conf_p = trace_reflections(image, depth, normal, rough, k, stats=stats_p, **kw)
+    hit_h, hit_p = conf_h > 0, conf_p > 0
+    assert int(hit_p.sum()) > 50
+    assert int((hit_h != hit_p).sum()) <= 0.01 * int(hit_p.sum())
+    both = (hit_h & hit_p).expand_as(refl_h)
+    assert float((refl_h - refl_p).abs()[both].median()) < 1e-3
+    if case != "random":  # (noise: no empty space to skip)
+        assert stats_h["ray_steps"] < stats_p["ray_steps"]  # and the cheaper walk
+
+
+def test_batched_frames_march_like_single_frames(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Rays of every batch item read their own item's chain (batch offsets in the chain
+    index), and the float64 chain index used for frames too large for exact float32
+    indices gives the same result as the float32 one."""
+    from torchraster.post import ssr as ssr_module
+
+    image, depth, normal, rough, k = _random_frames()
+    both = trace_reflections(image, depth, normal, rough, k, thickness=0.5)
+    for i in range(2):
+        one = trace_reflections(image[i:i + 1], depth[i:i + 1], normal[i:i + 1],
+                                rough[i:i + 1], k, thickness=0.5)
+        for a, b in zip(both, one, strict=True):
+            assert torch.equal(a[i:i + 1], b)
+    monkeypatch.setattr(ssr_module, "_FLOAT_INDEX_LIMIT", 0)
+    wide = trace_reflections(image, depth, normal, rough, k, thickness=0.5)
+    for a, b in zip(both, wide, strict=True):
+        assert torch.equal(a, b)
+
+
+def test_weight_at_the_hits_is_the_split_sum_weight_of_the_frame() -> None:
+    """SSR evaluates W and the composite at the hit pixels only: they must equal the
+    full-frame specular_weight of n.v (eye rays of the pixels) and the full-frame formula."""
+    image, depth, normal, rough, k = _quad_gbuffer(32)
+    k = k.reshape(4)
+    albedo, metallic = torch.rand_like(image), torch.rand_like(rough)
+    fallback = torch.rand_like(image) * 0.1
+    maps = SSR(edge_fade=0.0)(image, depth, normal,
+            Surface(albedo=albedo, metallic=metallic, roughness=rough),
+            intrinsics=k,
+                              fallback=fallback, return_maps=True)
+    hit = (maps.confidence > 0).expand_as(image)
+    assert int(hit.sum()) > 100
+    b, _, h, w = image.shape
+    jj = torch.arange(w, dtype=image.dtype).view(1, w).expand(h, w)
+    ii = torch.arange(h, dtype=image.dtype).view(h, 1).expand(h, w)
+    eye = torch.stack([(jj - k[2]) / k[0], -(ii - k[3]) / k[1], -torch.ones(h, w)])
+    n_dot_v = (F.normalize(normal, dim=1) * F.normalize(eye, dim=0)).sum(1, keepdim=True)
+    w_ref = specular_weight(n_dot_v.abs(), albedo, metallic, rough)
+    torch.testing.assert_close(maps.weight[hit], w_ref[hit])
+    assert float(maps.weight[~hit].abs().max()) == 0.0
+    expect = image + maps.confidence * (w_ref * maps.reflection - fallback)
+    torch.testing.assert_close(maps.image, expect)
 
 # ------------------------------------------------------------------------------ renderer
 def _glow_scene() -> tuple[tr.RenderScene, torch.Tensor, torch.Tensor]:

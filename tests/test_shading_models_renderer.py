@@ -129,13 +129,15 @@ def test_toon_options_reach_the_model():
 
 
 def test_unknown_names_and_options_raise_naming_the_choices():
-    with pytest.raises(ValueError, match="^ShadingSettings.model: expected one of .*toon.*got 'cel'"):
+    with pytest.raises(ValueError,
+                       match="^ShadingSettings.model: expected one of .*toon.*got 'cel'"):
         tr.Renderer(8, shading="cel")
     with pytest.raises(ValueError, match=r"shading options \['bandz'\].*bands"):
         tr.Renderer(8, shading=tr.ShadingSettings("toon", options={"bandz": 2}))
     with pytest.raises(ValueError, match="bands: expected an int >= 1"):
         tr.Renderer(8, shading=tr.ShadingSettings("toon", options={"bands": 0}))
-    with pytest.raises(ValueError, match="^ShadingSettings.options: shading 'unlit' takes no options"):
+    with pytest.raises(ValueError,
+                       match="^ShadingSettings.options: shading 'unlit' takes no options"):
         tr.Renderer(8, shading=tr.ShadingSettings("unlit", options={"bands": 2}))
     with pytest.raises(ValueError, match="not parameters of model 'blinn_phong'"):
         tr.Renderer(8, shading=tr.ShadingSettings("blinn_phong", options={"rim": 1.0}))

@@ -77,7 +77,7 @@ from .shading.shadows import (
     render_shadow_maps,
     shadow_visibility,
 )
-from .shading.surface import PixelSurface
+from .shading.surface import PixelSurface, Surface
 from .shading.volumetric import Fog, apply_fog, surface_light_hook
 from .transparency import (
     composite_over,
@@ -962,8 +962,9 @@ class Renderer(nn.Module):
         normal_view = torch.einsum("bij,bjhw->bihw", view[:, :3, :3].to(dt), n)
         depth = torch.where(gb.mask > 0, gb.depth.to(dt), torch.zeros_like(rough))
         cov = coverage.to(dt)
-        return self.ssr(radiance, depth, normal_view, rough, metal, gb.albedo.to(dt),
-                        projection=proj.to(dt), fallback=fallback * cov, weight=weight * cov)
+        surface = Surface(albedo=gb.albedo.to(dt), metallic=metal, roughness=rough)
+        return self.ssr(radiance, depth, normal_view, surface, projection=proj.to(dt),
+                        fallback=fallback * cov, weight=weight * cov)
 
     def _apply_fog(self, plan: RenderPlan, image: torch.Tensor, gb: GBuffer,
                    view: torch.Tensor, proj: torch.Tensor, eye: torch.Tensor,
