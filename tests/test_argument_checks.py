@@ -162,3 +162,18 @@ def test_antialias_blames_mismatched_frags() -> None:
         tr.antialias(torch.zeros(1, 3, 8, 8), frags, clip, faces)
     with pytest.raises(ValueError, match=r"^color: expected shape"):
         tr.antialias(torch.zeros(3, 4, 4), frags, clip, faces)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64])
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_finite_check_finds_one_bad_value(dtype: torch.dtype, bad: float) -> None:
+    from torchraster._validate import check_tensor
+
+    x = torch.rand(2, 3, 17, 19).to(dtype)
+    assert check_tensor("x", x, (2, 3, None, None), finite=True) is x
+    x[1, 2, 16, 18] = bad  # the last value
+    with pytest.raises(ValueError, match=r"^x: contains 1 NaN/Inf value"):
+        check_tensor("x", x, (2, 3, None, None), finite=True)
+    x = x.flip(-1).requires_grad_(True)  # a graph leaf: checked without recording
+    with pytest.raises(ValueError, match=r"^x: contains 1 NaN/Inf value"):
+        check_tensor("x", x, (2, 3, None, None), finite=True)
