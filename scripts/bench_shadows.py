@@ -11,18 +11,21 @@ with shadows to one without (``raytrace.render_shadow_factor``).
   ray-traced area light (a disc of radius 0.15 m / a 4 degree sun) and against the hard
   (point) reference;
 * depth / slope / normal biases: IoU on the sphere and acne on a plane lit at 5 degrees;
-* the shadow pass against the main pass for 1, 4, 16 point / spot lights, batch 1 and 4.
+* the shadow pass against the main pass for 1, 4, 16 point / spot lights, batch 1 and 4,
+  over the sphere scene and a typical view (a floor with objects, lights above it, a camera
+  looking down at it), with the culled views (the default) and with every view rendered.
 
 Time of the shadow pass = median of renders with shadows minus median of renders without
 (the main pass), measured interleaved in this run, ``torch.no_grad``.
 
-    python scripts/bench_shadows.py [--quick] [--pictures-only]
+    python scripts/bench_shadows.py [--quick] [--pictures-only] [--cost-only]
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import re
 import statistics
 import time
 from pathlib import Path
@@ -33,6 +36,7 @@ from benchmd import markdown_table, update_section
 from PIL import Image, ImageDraw
 
 import torchraster as tr
+from torchraster.shading import shadows
 from torchraster.shading.shadows import ShadowSettings, directional_views
 from torchraster.testing import raytrace as rt
 
@@ -61,6 +65,65 @@ def field_scene():
 
 FIELD_CAMERA = camera(*rt.FIELD_CAMERA)
 FIELD_SUN = rt.FIELD_SUN
+
+
+def culled_shadow_time(scene, lights, view, proj, res: int, repeats: int
+                       ) -> tuple[float, float, float, float, float, str]:
+    """(maps with culled views, maps of every view, shadow pass with culled views, shadow
+    pass rendering every view, main pass) seconds of CPU time and the views rendered with
+    culling ("k of n"). The shadow pass is timed inside the render (the renderer's maps
+    and lookup steps, ``_shadow_maps`` and ``_shadow_hook``; the maps alone: the first),
+    the main pass is a render without shadows; the three are
+    interleaved (culling off: ``shadows.CULL_VIEWS = False``) and each is the fastest of
+    ``repeats`` (the other jobs of a shared machine only add time). Every call renders
+    its maps (no ``ShadowMapCache``: as when the scene or the lights move; a cache would
+    keep the maps of this static scene across the repeats)."""
+    with_s, without = tr.Renderer(res), tr.Renderer(res, shadows=False)
+    with_s.shadow_cache = None
+    spent = {"maps": 0.0, "lookup": 0.0}
+
+    def timed(fn, part: str):
+        def run(*args, **kwargs):
+            t = time.process_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                spent[part] += time.process_time() - t
+        return run
+
+    with_s._shadow_maps = timed(with_s._shadow_maps, "maps")
+    with_s._shadow_hook = timed(with_s._shadow_hook, "lookup")
+    times: dict[str, list[tuple[float, float]]] = {"culled": [], "all": [], "main": []}
+    steps: tuple[str, ...] = ()
+
+    def run(which: str) -> None:
+        nonlocal steps
+        shadows.CULL_VIEWS = which != "all"
+        spent.update(maps=0.0, lookup=0.0)
+        try:
+            t = time.process_time()
+            out = (without if which == "main" else with_s)(scene, view, proj, lights)
+            total = time.process_time() - t
+        finally:
+            shadows.CULL_VIEWS = True
+        times[which].append((spent["maps"], spent["maps"] + spent["lookup"]) if which != "main"
+                            else (total, total))
+        if which == "culled":
+            steps = out.plan.shadow_maps
+
+    with torch.no_grad():
+        for which in times:  # warm-up
+            run(which)
+        for k in times.values():
+            k.clear()
+        for _ in range(repeats):
+            for which in times:
+                run(which)
+    counts = [s.rsplit(", ", 1)[1].removesuffix(" rendered") for s in steps
+              if s.endswith("rendered")]
+    best = {k: (min(m for m, _ in v), min(p for _, p in v)) for k, v in times.items()}
+    return (best["culled"][0], best["all"][0], best["culled"][1], best["all"][1],
+            best["main"][1], "; ".join(counts))
 
 
 def shadow_time(scene, lights, view, proj, res: int, repeats: int) -> tuple[float, float]:
@@ -234,28 +297,62 @@ def biases(b: Bench) -> tuple[str, list]:
                              "min visibility at 5 deg", "acne px at 3 deg"], rows), rows
 
 
-def light_counts(counts, batches, res: int, repeats: int) -> str:
-    positions, faces, cast = sphere_scene()
-    scene = tr.RenderScene(positions, faces, materials=[MATERIAL], cast_shadows=cast)
-    view, proj = camera()
+def typical_scene():
+    """A typical view: a 12 m floor with 7 spheres (0.3-0.6 m) and a camera 3 m high,
+    6 m back, looking down at the middle; :func:`ground_scene` outputs and the camera."""
+    gen = torch.Generator().manual_seed(2)
+    casters = []
+    for _ in range(7):
+        r = 0.3 + 0.3 * float(torch.rand(1, generator=gen))
+        x, z = (torch.rand(2, generator=gen) * 8 - 4).tolist()
+        casters.append(rt.icosphere(r, (x, r, z)))
+    return rt.ground_scene(casters, 12.0), camera((0.0, 3.0, 6.0), (0.0, 0.0, 0.0), 50.0)
+
+
+def _light_positions(scene_name: str, n: int) -> torch.Tensor:
+    """``(n, 3)``: on a 1.2 m circle 1.8 m high over the sphere; over the typical view's
+    floor, 2.5 m high on a jittered grid (one light: above the middle)."""
+    if scene_name == "sphere":
+        ang = torch.arange(n) * (2 * math.pi / n)
+        return torch.stack([1.2 * torch.cos(ang), torch.full_like(ang, 1.8),
+                            1.2 * torch.sin(ang)], -1)
+    side = math.ceil(math.sqrt(n))
+    k = torch.arange(n)
+    grid = torch.stack([(k % side).float(), (k // side).float()], -1)
+    xz = (grid + 0.5) / side * 8 - 4 if n > 1 else torch.zeros(1, 2)
+    return torch.stack([xz[:, 0], torch.full((n,), 2.5), xz[:, 1]], -1)
+
+
+def light_counts(counts, batches, res: int, repeats: int) -> tuple[str, list]:
+    """Shadow pass against the main pass, point and spot lights, over the sphere scene and
+    a typical view; culled views (the renderer's default) and every view."""
+    (typ_pos, typ_faces, typ_cast), typ_camera = typical_scene()
+    scenes = {"sphere": (sphere_scene(), camera()),
+              "typical": ((typ_pos, typ_faces, typ_cast), typ_camera)}
     rows = []
-    for kind in ("point", "spot"):
-        for batch in batches:
-            for n in counts:
-                ang = torch.arange(n) * (2 * math.pi / n)
-                lights = rt.make_lights(kind, ShadowSettings(map_size=512), count=n,
-                                        batch=batch)
-                part = getattr(lights, kind)
-                part.position = torch.stack([1.2 * torch.cos(ang), torch.full_like(ang, 1.8),
-                                             1.2 * torch.sin(ang)], -1).expand(batch, n, 3)
-                if kind == "spot":
-                    part.direction = -part.position
-                t, main = shadow_time(scene, lights, view.expand(batch, 4, 4), proj, res,
-                                      repeats if n * batch < 16 else 1)
-                rows.append([kind, batch, n, t * 1e3, main * 1e3, t / main])
-                print(rows[-1], flush=True)
-    return markdown_table(["light", "batch", "shadowed lights", "shadow pass ms",
-                           "main pass ms", "shadow / main"], rows), rows
+    for scene_name, ((positions, faces, cast), (view, proj)) in scenes.items():
+        scene = tr.RenderScene(positions, faces, materials=[MATERIAL], cast_shadows=cast)
+        for kind in ("point", "spot"):
+            for batch in batches:
+                for n in counts:
+                    lights = rt.make_lights(kind, ShadowSettings(map_size=512), count=n,
+                                            batch=batch)
+                    part = getattr(lights, kind)
+                    part.position = _light_positions(scene_name, n).expand(batch, n, 3)
+                    if kind == "spot":
+                        part.direction = (-part.position if scene_name == "sphere" else
+                                          torch.tensor([0.0, -1.0, 0.0]).expand(batch, n, 3))
+                    maps, maps_all, t, t_all, main, views = culled_shadow_time(
+                        scene, lights, view.expand(batch, 4, 4), proj, res,
+                        repeats if n * batch < 16 else 2)
+                    rows.append([scene_name, kind, batch, n, views, maps * 1e3,
+                                 maps_all * 1e3, t * 1e3, t_all * 1e3, main * 1e3, t / main,
+                                 t_all / main])
+                    print(rows[-1], flush=True)
+    return markdown_table(["scene", "light", "batch", "shadowed lights", "views rendered",
+                           "maps ms", "every view: maps ms", "shadow pass ms",
+                           "every view: shadow pass ms", "main pass ms", "shadow / main",
+                           "every view: shadow / main"], rows), rows
 
 
 def best_biases(bias_rows: list) -> tuple[str, float] | None:
@@ -277,7 +374,6 @@ def findings(bias_rows: list, count_rows: list) -> str:
     base = row[(default, "pcf")]
     best = best_biases(bias_rows)
     pcss = [r[6] for r in bias_rows if r[1] == "pcss"]
-    ratios = [r[-1] for r in count_rows]
     lines = []
     if best:
         better = row[(best[0], "pcf")]
@@ -295,11 +391,69 @@ def findings(bias_rows: list, count_rows: list) -> str:
         "(receiver-plane bias), so the receiver does not shadow itself.")
     lines.append("* PCF and VSM are hard-shadow filters: against an area light only PCSS stays "
                  f"within {SOFT_OK} shadow-region MAE.")
-    lines.append(
-        f"* The shadow pass costs {min(ratios):.1f}-{max(ratios):.1f} times the main pass "
-        "(512² image, 512² maps, 1-16 lights, batch 1-4): cube maps of point lights (6 "
-        "views each) cost most.")
+    lines.append(cost_finding(count_rows))
     return "\n".join(lines)
+
+
+def cost_finding(count_rows: list) -> str:
+    """The findings' line on the cost of the shadow pass (rows of :func:`light_counts`)."""
+    ratios = [r[-2] for r in count_rows]
+    every = [r[-1] for r in count_rows]
+    typical = [(r[-1], r[-2]) for r in count_rows if r[0] == "typical" and r[1] == "point"]
+    saved = [1 - r[5] / r[6] for r in count_rows if r[1] == "point" and r[6] > 0]
+    return (
+        f"* The shadow pass costs {min(ratios):.1f}-{max(ratios):.1f} times the main pass "
+        f"(512² image, 512² maps, 1-16 lights, batch 1-4; {min(every):.1f}-{max(every):.1f} "
+        "rendering every view): cube maps of point lights (6 views each) cost most. Only "
+        "the cube faces and spot maps some receiver can read are rendered (the G-buffer's "
+        "surfaces, the fog's view rays, with edge antialiasing the scene's box; "
+        "`shadows.cull_local_views`, the same image)"
+        + (f"; in the typical view (point lights 2.5 m over a floor the camera looks down "
+           f"at) the point-light shadow pass falls from {min(a for a, _ in typical):.1f}-"
+           f"{max(a for a, _ in typical):.1f} to {min(c for _, c in typical):.1f}-"
+           f"{max(c for _, c in typical):.1f} times the main pass." if typical else ".")
+        + (f" The point lights' maps take {min(saved):.0%}-{max(saved):.0%} less time; the "
+           "lookups, which culling does not change, are most of the shadow pass here (and "
+           "the noisiest part of these times)." if saved else ""))
+
+
+def cost_section(table: str, res: int) -> str:
+    """The subsection of the shadow pass's cost (Markdown, from its heading)."""
+    return f"""### Shadow pass against the main pass ({res}² image, 512² maps, PCF)
+
+Scenes: `sphere` is the sphere on the plane above with the lights on a 1.2 m circle 1.8 m
+high (spots aimed at the sphere); `typical` a 12 m floor with 7 spheres seen from 3 m high
+and 6 m back, looking down at the middle, the lights 2.5 m over the floor on a grid (spots
+aimed straight down), whose faces away from the visible floor see nothing the camera
+sees. Views rendered: cube faces (or spot maps) rendered of those of every item and light,
+with culling (the default).
+Every view: the same renders with culling off (`shadows.CULL_VIEWS = False`). Shadow pass:
+CPU time of the renderer's shadow steps (maps and lookups: `_shadow_maps`, `_shadow_hook`)
+inside the render; main pass: a render without shadows; interleaved, the fastest of the
+repeats (2 from 16 light-items on). Every render draws its maps (no `ShadowMapCache`, as
+when the scene or the lights move): culling saves maps only, not lookups.
+
+{table}
+"""
+
+
+def replace_cost_section(table: str, rows: list, res: int) -> None:
+    """Put a new cost subsection and findings line into docs/benchmarks.md's shadows
+    section (the other tables keep those of their last full run)."""
+    from benchmd import DOC  # noqa: PLC0415
+
+    text = DOC.read_text()
+    m = re.search(r"<!-- begin shadows -->\n(.*?)\n\nCommand: .*?<!-- end shadows -->", text,
+                  re.S)
+    if m is None:
+        raise SystemExit("docs/benchmarks.md has no shadows section: run the full benchmark")
+    body = m[1]
+    body = re.sub(r"### Shadow pass against the main pass.*?(?=\n### )",
+                  lambda _: cost_section(table, res).rstrip() + "\n", body, flags=re.S)
+    body = re.sub(r"^\* The shadow pass costs.*$", lambda _: cost_finding(rows), body,
+                  flags=re.M)
+    update_section("shadows", body, "python scripts/bench_shadows.py (the cost tables: "
+                   "python scripts/bench_shadows.py --cost-only)")
 
 
 def pick_defaults(size_ok: dict, soft_picks: list, bias_rows: list) -> str:
@@ -415,9 +569,20 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small sweep, no docs update")
     ap.add_argument("--pictures-only", action="store_true")
+    ap.add_argument("--cost-only", action="store_true",
+                    help="only the shadow pass / main pass table (culled views against every "
+                         "view); replaces it in docs/benchmarks.md's shadows section")
     args = ap.parse_args()
     torch.manual_seed(0)
     torch.set_num_threads(1)  # CPU times of one thread: comparable on a shared machine
+    if args.cost_only:
+        res = 256 if args.quick else 512
+        counts, batches = ((1, 4), (1,)) if args.quick else ((1, 4, 16), (1, 4))
+        table, rows = light_counts(counts, batches, res, 1 if args.quick else 3)
+        print(table + "\n\n" + cost_finding(rows))
+        if not args.quick:
+            replace_cost_section(table, rows, res)
+        return
     start = time.perf_counter()
     if args.pictures_only or not args.quick:
         picture_filters()
@@ -470,10 +635,7 @@ pass), {b.repeats} interleaved repeats after a warm-up.
 
 {bias_table}
 
-### Shadow pass against the main pass ({'256' if args.quick else '512'}² image, 512² maps, PCF)
-
-{count_table}
-
+{cost_section(count_table, 256 if args.quick else 512)}
 ### Findings
 
 {findings(bias_rows, count_rows)}

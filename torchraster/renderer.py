@@ -72,8 +72,10 @@ from .shading.shadows import (
     ShadowMapCache,
     ShadowMaps,
     ShadowSettings,
+    cull_local_views,
     directional_views,
     local_views,
+    merge_shadow_steps,
     render_shadow_maps,
     shadow_visibility,
 )
@@ -780,7 +782,8 @@ class Renderer(nn.Module):
         eye = camera_position(view.to(positions.dtype))
         groups = None
         if plan.shadow_lights:
-            groups, lights_b = self._shadow_maps(plan, scene, view, proj, lights, b, face_ranges)
+            groups, lights_b = self._shadow_maps(plan, scene, view, proj, lights, b, face_ranges,
+                                                 receivers=gbs)
             plan = replace(plan, shadow_maps=tuple(st for g in groups for st in g.steps))
 
         hooks: list = []  # the shadow hook of each radiance_of call (edge antialiasing)
@@ -929,7 +932,7 @@ class Renderer(nn.Module):
                                          plans[0]))
             else:
                 outs.append(inner.forward(*args, **kwargs))
-        shadow_maps = tuple(dict.fromkeys(st for o in outs for st in o.plan.shadow_maps))
+        shadow_maps = merge_shadow_steps(st for o in outs for st in o.plan.shadow_maps)
         plan = replace(outs[0].plan, shadow_maps=shadow_maps,
                        chunks=tuple(o.image.shape[0] for o in outs))
         if plan.edge_pixels is not None:
@@ -986,9 +989,18 @@ class Renderer(nn.Module):
 
     def _shadow_maps(self, plan: RenderPlan, scene: RenderScene, view: torch.Tensor,
                      proj: torch.Tensor, lights: Lights, b: int,
-                     face_ranges: torch.Tensor | None) -> tuple[list[ShadowMaps], Lights]:
+                     face_ranges: torch.Tensor | None,
+                     receivers: Sequence[GBuffer] | None = None
+                     ) -> tuple[list[ShadowMaps], Lights]:
         """Render the planned shadow maps (one batched pass per map size); returns the
-        groups and the lights expanded to the batch."""
+        groups and the lights expanded to the batch.
+
+        ``receivers``: the G-buffers of every depth layer of the frame (their positions
+        are the surfaces that look shadows up): the point / spot views none of them, no
+        fog sample along the view rays and (edge antialiasing: sub-samples not known
+        yet) nothing in the scene's box can read, or that hold no caster, are not rendered
+        (:func:`~torchraster.shading.shadows.cull_local_views`; the same image). None:
+        every view is rendered."""
         positions = scene.positions
         faces = scene.faces
         scene_bounds = _caster_bounds(positions, faces, face_ranges, b)  # what may receive
@@ -1015,6 +1027,24 @@ class Renderer(nn.Module):
                                 bounds)
             g.lights = list(ids)
             groups.append(g)
+        # cube maps only: a single spot map is read by most frames, and the receivers' tile
+        # boxes cost more than its render saves (docs/benchmarks.md, shadows)
+        local = [g for g in groups if g.layout == "cube"]
+        if receivers and local and all(gb.position is not None for gb in receivers):
+            points = [(gb.position, gb.mask) for gb in receivers]
+            segments = None
+            if plan.fog:  # fog samples: eye + t ray, 0 <= t <= the surface (inf: none)
+                eye = camera_position(view)
+                rays = view_rays(view, proj, plan.resolution)
+                length = None
+                for gb in receivers:  # any layer may be the one the fog stops at
+                    d = (gb.position.detach().to(eye.dtype) - eye[:, :, None, None]).norm(
+                        dim=1, keepdim=True)
+                    d = torch.where(gb.mask > 0, d, torch.full_like(d, float("inf")))
+                    length = d if length is None else torch.maximum(length, d)
+                segments = (eye, rays, length)
+            boxes = scene_bounds if plan.edge_supersample > 1 else None
+            cull_local_views(local, points, segments, boxes, (positions, faces, face_ranges))
         render_shadow_maps(groups, positions, faces, face_ranges, cache=self.shadow_cache)
         return groups, lights
 

@@ -756,8 +756,9 @@ class SSR(nn.Module):
         >>> normals = torch.tensor([0.0, 0, 1]).view(1, 3, 1, 1).expand(1, 3, 8, 8)
         >>> from torchraster.camera import perspective
         >>> rough, proj = torch.full((1, 1, 8, 8), 0.1), perspective(90.0, 1.0, 0.1)
-        >>> out = SSR()(image, depth, normals, rough, torch.ones_like(rough), image,
-        ...             projection=proj)
+        >>> from torchraster.shading.surface import Surface
+        >>> metal = Surface(albedo=image, metallic=torch.ones_like(rough), roughness=rough)
+        >>> out = SSR()(image, depth, normals, metal, projection=proj)
         >>> out.shape, torch.equal(out, image)  # a mirror facing the camera: rays leave
         (torch.Size([1, 3, 8, 8]), True)
     """

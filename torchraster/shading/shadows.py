@@ -19,6 +19,14 @@ Views per light:
 * **point**: a cube map (6 perspective faces, each widened by a few texels so filter taps
   near a face edge stay inside the face).
 
+The renderer renders only the point / spot views that something reads
+(:func:`cull_local_views`, after the G-buffer pass): a cube face that no receiver selects
+(surfaces of every depth layer, fog samples along the view rays, with edge antialiasing
+anything in the scene's box) or whose frustum holds no caster, a spot map no receiver's
+filter footprint touches. The others keep their initial maps, which no lookup reads (or,
+without casters, which equal the rendered ones), so the image is bit-identical;
+``ShadowMaps.needed`` holds the choice and the steps say how many were rendered.
+
 Maps hold *linear* depth (distance along the light's view axis, metres), so biases are in
 world units: ``bias`` and ``slope_bias`` are multiples of the world size of one shadow-map
 texel at the receiver (constant + slope-scaled, Lengyel / "Common techniques to improve
@@ -70,7 +78,8 @@ from __future__ import annotations
 import functools
 import hashlib
 import math
-from collections.abc import Sequence
+import re
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 import torch
@@ -216,6 +225,10 @@ class ShadowMaps:
     #: of each texel (-1: none) and the casters (positions ``(B or 1, V, 3)``, faces)
     face_id: torch.Tensor | None = None
     casters: tuple[torch.Tensor, torch.Tensor] | None = None
+    #: ``(B, Ls, NV)`` bool: the views of each item's light that some receiver can read
+    #: (:func:`cull_local_views`); only those are rendered (the others stay empty: no
+    #: lookup reads them). None: every view in ``rendered``.
+    needed: torch.Tensor | None = None
 
     @property
     def perspective(self) -> bool:
@@ -564,6 +577,288 @@ def local_views(kind: str, position: torch.Tensor, direction: torch.Tensor | Non
     return maps
 
 
+# ---------------------------------------------------------------------------- culling
+
+#: Render only the views of point / spot lights that some receiver can read
+#: (:func:`cull_local_views`); False renders every view (the reference of
+#: tests/test_shadow_face_culling.py and of scripts/bench_shadows.py's culling rows).
+CULL_VIEWS: bool = True
+#: Relative widening of the tested pyramids and absolute slack (times the largest
+#: coordinate of the light, the receivers and the camera): a receiver within rounding of a
+#: face border counts for both faces (the lookup's float32 selection may pick either).
+CULL_WIDEN: float = 1e-3
+CULL_SLACK: float = 1e-5
+#: Side (pixels) of the tiles whose bounding boxes stand for their receivers.
+CULL_TILE: int = 8
+#: Tiles x view planes tested at once (bounds the temporaries of the culling test).
+CULL_CHUNK_ELEMENTS: int = 2**22
+
+
+def _read_planes(g: ShadowMaps) -> torch.Tensor | None:
+    """``(B, Ls, NV, 4, 3)`` inward normals of the planes through each light that bound
+    the region its view can be read from (``n . (x - light) >= 0`` for all four), or None
+    when any receiver may read every view.
+
+    A cube face is read by the receivers whose direction from the light has it as its
+    dominant axis (:func:`_select_view`; filter taps stay inside the selected face, which
+    is widened for them). A single spot map is read by receivers whose filter footprint
+    (the widest tap, +2 texels for bilinear weights and rounding) touches the map, after
+    the normal offset (which moves a receiver at view depth D by at most
+    ``normal_bias * texel * D``)."""
+    s = g.settings
+    b, n_l, nv = g.view.shape[:3]
+    dt, dev = torch.float64, g.view.device
+    w = 1 + CULL_WIDEN
+    if g.layout == "cube":
+        rows = []
+        for k, sign in ((0, 1), (0, -1), (1, 1), (1, -1), (2, 1), (2, -1)):
+            for j in (a for a in range(3) if a != k):
+                for side in (1, -1):
+                    n = [0.0, 0.0, 0.0]
+                    n[k], n[j] = sign * w, -side
+                    rows.append(n)
+        planes = torch.tensor(rows, dtype=dt, device=dev).view(1, 1, 6, 4, 3)
+        return planes.expand(b, n_l, nv, 4, 3)
+    if g.layout != "single":
+        return None
+    size = s.map_size
+    reach = (s.max_penumbra if s.filter == "pcss" else s.pcf_radius) + 2
+    tan_half = 1 / g.proj.detach().to(dt)[..., 0, 0]  # (B, Ls, 1)
+    e = s.normal_bias * 2 * tan_half / size  # normal offset per metre of depth
+    if bool((e >= 0.5).any()):
+        return None
+    tan_w = (tan_half * (1 + 2 * reach / size) * (1 + e) + e) * w
+    rot = g.view.detach().to(dt)[..., :3, :3]  # rows right, up, back
+    right, up, fwd = rot[..., 0, :], rot[..., 1, :], -rot[..., 2, :]
+    t = tan_w[..., None]
+    return torch.stack([t * fwd - right, t * fwd + right, t * fwd - up, t * fwd + up], -2)
+
+
+def _tile_boxes(values: torch.Tensor, mask: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per :data:`CULL_TILE` square tile of ``values`` ``(B, 3, H, W)`` where ``mask``
+    ``(B, 1, H, W)`` bool: the min and max ``(B, T, 3)`` of the masked pixels (exact: no
+    rounding) and ``(B, T)`` bool, tiles with any."""
+    x = values.detach()
+    if x.dtype not in (torch.float32, torch.float64):
+        x = x.float()  # half precision: reduced in float32 (min / max are exact)
+    b, _, h, w = x.shape
+    t = CULL_TILE
+    # max of (x, -x) per tile: one masked copy, one reduction (min = -max of -x); the mask
+    # as an added 0 / -inf (a broadcast masked_fill_ or where was ~3x slower on CPU)
+    off = torch.zeros((), dtype=x.dtype, device=x.device)
+    both = torch.cat([x, -x], 1) + torch.where(mask, off, float("-inf")).expand(b, 1, h, w)
+    ph, pw = (-h) % t, (-w) % t
+    if ph or pw:
+        both = torch.nn.functional.pad(both, (0, pw, 0, ph), value=float("-inf"))
+    red = both.view(b, 6, (h + ph) // t, t, (w + pw) // t, t).amax(5).amax(3).flatten(2)
+    hi, lo = red[:, :3].transpose(1, 2), -red[:, 3:].transpose(1, 2)
+    return lo, hi, hi[..., 0] > float("-inf")
+
+
+def _support(planes: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
+             origin: torch.Tensor | None = None) -> torch.Tensor:
+    """``max n . (q - origin)`` over the boxes ``lo``..``hi`` ``(T, 3)`` of each plane ``n``
+    ``(Ls, P, 3)`` (``origin`` ``(Ls, 3)`` or None: 0): ``(T, Ls, P)``, as
+    ``n . centre + |n| . half extent`` (two small matrix products; float64)."""
+    n_l, n_p = planes.shape[:2]
+    flat = planes.reshape(n_l * n_p, 3)
+    out = ((hi + lo) / 2) @ flat.T + ((hi - lo) / 2) @ flat.abs().T  # (T, Ls * P)
+    if origin is not None:
+        out = out - (planes * origin[:, None]).sum(-1).reshape(-1)
+    return out.view(-1, n_l, n_p)
+
+
+def _reach(planes: torch.Tensor, light: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
+           slack: torch.Tensor, eye: torch.Tensor | None = None,
+           dlo: torch.Tensor | None = None, dhi: torch.Tensor | None = None,
+           rays: torch.Tensor | None = None) -> torch.Tensor:
+    """``(Ls, NV)`` bool: some box ``lo``..``hi`` ``(T, 3)`` of one item may reach each
+    view's region: no single plane of the view has the whole box outside (conservative;
+    boxes alone against cube faces are tested exactly by :func:`_cube_reach`).
+
+    With ``eye`` ``(3,)``: the receivers are the convex hulls of the eye and each box
+    (segments from the eye), plus where ``rays`` ``(T,)`` the rays from the eye along the
+    directions in ``dlo``..``dhi`` ``(T, 3)`` (unbounded segments)."""
+    n_l, nv = planes.shape[:2]
+    if eye is None and nv == 6:  # cube faces: exact (and cheaper) on the coordinates
+        return _cube_reach(light, lo, hi, slack)
+    flat = planes.reshape(n_l, nv * 4, 3)
+    tol = slack * flat.abs().sum(-1)  # (Ls, P)
+    base = None if eye is None else (flat * (eye - light)[:, None]).sum(-1)  # (Ls, P)
+    out = torch.zeros(n_l, nv, dtype=torch.bool, device=planes.device)
+    per = max(1, CULL_CHUNK_ELEMENTS // (n_l * nv * 4 * 3))
+    for k in range(0, lo.shape[0], per):
+        sl = slice(k, k + per)
+        sup = _support(flat, lo[sl], hi[sl], light)  # (T, Ls, P)
+        if base is not None:
+            sup = torch.maximum(sup, base)
+            if rays is not None:  # an unbounded ray with n . d > 0 leaves no plane behind
+                up = _support(flat, dlo[sl], dhi[sl]) > 0
+                sup = torch.where(up & rays[sl, None, None], float("inf"), sup)
+        out |= (sup + tol >= 0).view(-1, n_l, nv, 4).all(-1).any(0)
+    return out
+
+
+def _cube_reach(light: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
+                slack: torch.Tensor, tan_half: float = 1.0) -> torch.Tensor:
+    """``(Ls, 6)`` bool: some box ``lo``..``hi`` ``(T, 3)`` holds a point whose dominant
+    axis from the light ``(Ls, 3)`` is each cube face's (+X -X +Y -Y +Z -Z), or with
+    ``tan_half`` > 1 that lies in each face's frustum widened to it. Face (k, s) needs
+    ``tan_half s q_k >= |q_j|`` (j != k) at one point: take ``s q_k`` at its largest over
+    the box, then each ``|q_j|`` at its smallest (the coordinates are independent);
+    widened by :data:`CULL_WIDEN` and ``slack`` (m), like the planes of
+    :func:`_read_planes`."""
+    w = tan_half * (1 + CULL_WIDEN)
+    tol = slack * (w + 1)
+    out = []
+    per = max(1, CULL_CHUNK_ELEMENTS // (light.shape[0] * 3))
+    for k in range(0, lo.shape[0], per):
+        qlo, qhi = lo[k:k + per, None] - light, hi[k:k + per, None] - light  # (T, Ls, 3)
+        near = torch.maximum(torch.maximum(qlo, -qhi), torch.zeros_like(qlo))  # min |q_j|
+        faces = []
+        for axis in range(3):
+            others = near[..., [a for a in range(3) if a != axis]].amax(-1)
+            for ext in (qhi[..., axis], -qlo[..., axis]):  # +axis, -axis
+                faces.append((w * ext + tol >= others) & (ext * w + tol >= 0))
+        out.append(torch.stack(faces, -1).any(0))
+    return torch.stack(out).any(0)
+
+
+#: Consecutive caster triangles bounded by one box in the casters' test.
+CULL_CASTER_RUN: int = 16
+
+
+def _caster_boxes(positions: torch.Tensor, faces: torch.Tensor,
+                  face_range: tuple[int, int] | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Bounds ``(T, 3)`` (min, max) of runs of :data:`CULL_CASTER_RUN` consecutive
+    triangles ``faces`` (``face_range`` of them) over ``positions`` ``(V, 3)``."""
+    if face_range is not None:
+        faces = faces[face_range[0]:face_range[1]]
+    tri = positions.detach().index_select(0, faces.reshape(-1)).view(-1, 3, 3)
+    pad = (-len(tri)) % CULL_CASTER_RUN  # the last run repeats its last triangle
+    if pad and len(tri):
+        tri = torch.cat([tri, tri[-1:].expand(pad, 3, 3)])
+    runs = tri.view(-1, CULL_CASTER_RUN * 3, 3)
+    return runs.amin(1), runs.amax(1)
+
+
+def _caster_reach(g: ShadowMaps, casters: tuple, planes: torch.Tensor, light: torch.Tensor,
+                  slack: torch.Tensor) -> torch.Tensor:
+    """``(B, Ls, NV)`` bool: some caster triangle may lie in each view's frustum (a view
+    without any renders ``+inf`` everywhere, the value its maps start with)."""
+    positions, faces, face_ranges = casters
+    b, n_l, nv = g.view.shape[:3]
+    pos = positions if positions.dim() == 3 else positions[None]
+    out = torch.zeros(b, n_l, nv, dtype=torch.bool, device=g.view.device)
+    tan_half = float(1 / g.proj.detach()[0, 0, 0, 0, 0]) if g.layout == "cube" else 1.0
+    for i in range(b):
+        rng = None if face_ranges is None else tuple(face_ranges[i].tolist())
+        lo, hi = _caster_boxes(pos[min(i, pos.shape[0] - 1)], faces, rng)
+        if lo.shape[0] == 0:
+            continue
+        lo, hi = lo.to(light.dtype), hi.to(light.dtype)
+        if g.layout == "cube":
+            out[i] = _cube_reach(light[i], lo, hi, slack[i], tan_half)
+        else:  # the spot's read region holds its frustum (the taps' reach added)
+            out[i] = _reach(planes[i], light[i], lo, hi, slack[i])
+    return out
+
+
+def cull_local_views(groups: ShadowMaps | Sequence[ShadowMaps],
+                     points: Sequence[tuple[torch.Tensor, torch.Tensor]] = (),
+                     segments: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
+                     boxes: torch.Tensor | None = None,
+                     casters: tuple[torch.Tensor, torch.Tensor, torch.Tensor | None] | None
+                     = None) -> None:
+    """Mark the views of point / spot groups that some receiver can read (sets each
+    group's ``needed``; :func:`render_shadow_maps` renders only those, so with every
+    receiver given the lookups, and the image, are bit-identical to rendering every view).
+
+    A cube face is read by the receivers whose dominant direction from the light is its
+    axis; a spot map by those whose filter footprint touches it (:func:`_read_planes`).
+    Receivers are tested in boxes: one per :data:`CULL_TILE` square tile of pixels (the
+    bounds of its surface points, or the hull of the eye and its segments' ends). A box is
+    kept for a view unless one of the view's planes has it wholly outside: exact for boxes
+    and cube faces, conservative otherwise (a view near a border is kept). The regions are
+    widened by :data:`CULL_WIDEN` and their planes moved by :data:`CULL_SLACK` times the
+    item's largest coordinate (the lookup's own rounding). Does nothing with
+    :data:`CULL_VIEWS` False or when no receiver set is given.
+
+    Args:
+        groups: from :func:`local_views` (directional groups are left alone), one or
+            several of the same batch (the receivers are boxed once for all).
+        points: surface receivers: pairs of positions ``(B, 3, H, W)`` and ``(B, 1, H, W)``
+            masks (bool or {0, 1}) of the pixels that are surfaces.
+        segments: receivers along view rays (fog samples): eyes ``(B, 3)``, unit directions
+            ``(B, 3, H, W)``, lengths ``(B, 1, H, W)`` (``inf``: the whole ray; <= 0: none).
+        boxes: ``(B, 2, 3)`` world boxes (row 0 min, row 1 max) anywhere in which a
+            receiver may lie (e.g. sub-samples not known yet).
+        casters: the shadow casters as given to :func:`render_shadow_maps` (positions
+            ``(B, V, 3)`` or ``(V, 3)``, faces ``(F, 3)``, face ranges ``(B, 2)`` or None):
+            views whose frustum holds no caster triangle are not rendered either (their
+            maps stay ``+inf``, exactly what rendering them gives; not for VSM, whose
+            empty maps are blurred moments).
+    """
+    groups = [groups] if isinstance(groups, ShadowMaps) else list(groups)
+    groups = [g for g in groups if g.kind != "directional"]
+    if not CULL_VIEWS or not groups or not (points or segments is not None
+                                            or boxes is not None):
+        return
+    b = groups[0].view.shape[0]
+    dt = torch.float64
+    dev = groups[0].view.device
+    scale = torch.zeros(b, dtype=dt, device=dev)  # (B,) the largest coordinate of each item
+    tests = []  # (item, lo, hi, extra keyword arguments of _reach)
+
+    def add(i: int, lo: torch.Tensor, hi: torch.Tensor, **extra) -> None:
+        scale[i] = torch.maximum(scale[i], torch.maximum(lo.abs().amax(), hi.abs().amax()))
+        tests.append((i, lo, hi, extra))
+
+    for pos, mask in points:
+        lo, hi, on = _tile_boxes(pos.expand(b, 3, *pos.shape[-2:]),
+                                 (mask.detach() > 0).expand(b, 1, *mask.shape[-2:]))
+        for i in range(b):
+            if bool(on[i].any()):
+                add(i, lo[i][on[i]].to(dt), hi[i][on[i]].to(dt))
+    if segments is not None:
+        eye, rays, length = (t.detach() for t in segments)
+        h, w = rays.shape[-2:]
+        eye = eye.to(dt).expand(b, 3)
+        rays, length = rays.expand(b, 3, h, w), length.expand(b, 1, h, w)
+        finite, endless = torch.isfinite(length) & (length > 0), torch.isinf(length)
+        # the march's own rounding: its segments end within a relative 1e-5 of these
+        start = eye.to(rays.dtype)[:, :, None, None]
+        ends = start + rays * torch.where(finite, length * (1 + 1e-5), torch.zeros_like(length))
+        lo, hi, on = _tile_boxes(torch.where(finite, ends, start), finite | endless)
+        dlo, dhi, ray_on = _tile_boxes(rays, endless)
+        dlo = torch.where(ray_on[..., None], dlo, 0.0).to(dt)  # tiles without rays: unused
+        dhi = torch.where(ray_on[..., None], dhi, 0.0).to(dt)
+        for i in range(b):
+            keep = on[i]
+            if bool(keep.any()):
+                add(i, lo[i][keep].to(dt), hi[i][keep].to(dt), eye=eye[i], dlo=dlo[i][keep],
+                    dhi=dhi[i][keep], rays=ray_on[i][keep])
+                scale[i] = torch.maximum(scale[i], eye[i].abs().amax())
+    if boxes is not None:
+        boxes = boxes.detach().to(dt).expand(b, 2, 3)
+        for i in range(b):
+            add(i, boxes[i, :1], boxes[i, 1:])
+    for g in groups:
+        planes = _read_planes(g)
+        if planes is None:
+            continue
+        n_l, nv = g.view.shape[1:3]
+        light = g.light_position.detach().to(dt).expand(b, n_l, 3)
+        slack = CULL_SLACK * torch.maximum(scale, light.abs().amax((1, 2)))
+        needed = torch.zeros(b, n_l, nv, dtype=torch.bool, device=dev)
+        for i, lo, hi, extra in tests:
+            needed[i] |= _reach(planes[i], light[i], lo, hi, slack[i], **extra)
+        if casters is not None and g.settings.filter != "vsm":
+            needed &= _caster_reach(g, casters, planes, light, slack)
+        g.needed = needed
+
+
 # ------------------------------------------------------------------------------- render
 
 
@@ -691,15 +986,12 @@ def render_shadow_maps(groups: Sequence[ShadowMaps], positions: torch.Tensor,
         mats, owners, slots, spans = [], [], [], []
         for g in members:
             b, n_lights, nv = g.view.shape[:3]
-            keep = g.rendered.nonzero().flatten()
-            m = (g.proj @ g.view).index_select(2, keep)  # (B, Ls, NV', 4, 4)
-            mats.append(m.reshape(-1, 4, 4))
-            items = torch.arange(b, device=pos.device)[:, None, None].expand(
-                b, n_lights, keep.numel()).reshape(-1)
-            owners.append(items)
-            # flat (B * Ls * NV) index of each rendered view in the group's maps
-            flat = torch.arange(b * n_lights, device=pos.device)[:, None] * nv + keep
-            slots.append(flat.reshape(-1))
+            # flat (B * Ls * NV) index of each rendered view in the group's maps (b, light,
+            # view order, as the maps are laid out)
+            flat = _views_to_render(g).reshape(-1).nonzero().flatten()
+            mats.append((g.proj @ g.view).reshape(-1, 4, 4).index_select(0, flat))
+            owners.append(torch.div(flat, n_lights * nv, rounding_mode="floor"))
+            slots.append(flat)
             start = spans[-1][1] if spans else 0
             spans.append((start, start + slots[-1].numel()))
             g.depth = _empty_maps(g, size, positions.dtype)
@@ -756,14 +1048,52 @@ def render_shadow_maps(groups: Sequence[ShadowMaps], positions: torch.Tensor,
                     _store_maps(g, ndc[a - k:z - k].to(positions.dtype),
                                 slot[a - lo:z - lo])
             del ndc
-        for g in members:
+        for g, slot in zip(members, slots, strict=True):
             nv = g.view.shape[2]
             keep = int(g.rendered.sum())
             what = {"cascades": f"{nv} cascades", "cube": "cube 6 faces",
                     "single": "1 map"}[g.layout]
             if keep < nv:
                 what = f"{keep} of {nv} " + ("cascades" if nv > 1 else "maps")
-            g.steps.append(f"shadow {g.kind}{g.lights} {what} {size}x{size} {g.settings.filter}")
+            culled = ""
+            if g.needed is not None:  # culled (cull_local_views): views of all items, lights
+                culled = f", {slot.numel()} of {g.needed.numel()} " + (
+                    "faces rendered" if g.layout == "cube" else "maps rendered")
+            g.steps.append(f"shadow {g.kind}{g.lights} {what} {size}x{size} {g.settings.filter}"
+                           + culled)
+
+
+_RENDERED = re.compile(r"^(.*), (\d+) of (\d+) (faces|maps) rendered$")
+
+
+def merge_shadow_steps(steps: Iterable[str]) -> tuple[str, ...]:
+    """The shadow steps of several calls (e.g. the chunks of one batch) as one call's:
+    equal steps once, and the counts of ``", k of n faces rendered"`` (culled views)
+    added up per group.
+
+    Example:
+        >>> merge_shadow_steps(["shadow point[0] cube 6 faces 64x64 pcf, 5 of 12 faces "
+        ...                     "rendered", "shadow point[0] cube 6 faces 64x64 pcf, 3 of 6 "
+        ...                     "faces rendered"])
+        ('shadow point[0] cube 6 faces 64x64 pcf, 8 of 18 faces rendered',)
+    """
+    merged: dict[tuple[str, str], list[int]] = {}
+    for step in steps:
+        m = _RENDERED.match(step)
+        key = (step, "") if m is None else (m[1], m[4])
+        counts = merged.setdefault(key, [0, 0])
+        if m is not None:
+            counts[0] += int(m[2])
+            counts[1] += int(m[3])
+    return tuple(step if not unit else f"{step}, {k} of {n} {unit} rendered"
+                 for (step, unit), (k, n) in merged.items())
+
+
+def _views_to_render(g: ShadowMaps) -> torch.Tensor:
+    """``(B, Ls, NV)`` bool: the views of ``g`` that :func:`render_shadow_maps` renders."""
+    shape = g.view.shape[:3]
+    todo = g.rendered.view(1, 1, -1).expand(shape)
+    return todo if g.needed is None else todo & g.needed.to(todo.device).expand(shape)
 
 
 def _empty_maps(g: ShadowMaps, size: int, dtype: torch.dtype) -> torch.Tensor:
@@ -1310,5 +1640,5 @@ def check_face_flags(name: str, flags: torch.Tensor | None, n_faces: int) -> Non
 
 
 __all__ = ["FILTERS", "ShadowMapCache", "ShadowMaps", "ShadowSettings", "cascade_splits",
-           "directional_views", "local_views", "render_shadow_maps", "shadow_visibility",
-           "tap_pattern"]
+           "cull_local_views", "directional_views", "local_views", "merge_shadow_steps",
+           "render_shadow_maps", "shadow_visibility", "tap_pattern"]
