@@ -677,6 +677,7 @@ def _trace_packed(
     conf = conf * smoothstep((max_roughness - rough) / (0.25 * max_roughness)) * seen
     return _Hits(target, hb, rgb, conf)
 
+
 def trace_reflections(
     image: torch.Tensor,
     depth: torch.Tensor,
