@@ -1,8 +1,11 @@
-"""Shadow lookups: the fast paths of ``shadow_visibility`` (every view's matrix applied to
-every receiver, padded maps gathered once per call, int32 indices) against the general
-ones (per-receiver matrices, unpadded maps), and a batch against its items one by one."""
+"""Shadow lookups: the fast paths of ``shadow_visibility`` (padded maps gathered once per
+call, int32 indices) against the general ones (unpadded maps), each receiver's view
+transform against float64, the cube face against argmax, and a batch against its items one
+by one."""
 
 from __future__ import annotations
+
+import types
 
 import pytest
 import torch
@@ -53,12 +56,10 @@ def _setup(kind: str, filt: str, batch: int = 2, normal_bias: float = 0.0, light
 @pytest.mark.parametrize("filt", ["hard", "pcf", "pcss", "vsm"])
 @pytest.mark.parametrize("normal_bias", [0.0, 1.0])
 def test_fast_paths_agree_with_general_ones(kind, filt, normal_bias, monkeypatch):
-    # views: 1 x 1 x 6 (cube) or 1 x 2 x 2 (cascades) <= DENSE_VIEWS: the dense path
+    # views: 1 x 1 x 6 (cube) or 1 x 2 x 2 (cascades)
     g, p, n, recv, view = _setup(kind, filt, batch=1, normal_bias=normal_bias,
                                  lights=1 if kind == "point" else 2)
-    assert g.view.shape[:3].numel() <= shadows.DENSE_VIEWS
     fast = shadow_visibility(g, p, n, recv, view)
-    monkeypatch.setattr(shadows, "DENSE_VIEWS", 0)
     monkeypatch.setattr(shadows, "PAD_MAP_ELEMENTS", 0)
     general = shadow_visibility(g, p, n, recv, view)
     partial = ((general > 0.01) & (general < 0.99)).float().mean()
@@ -81,3 +82,30 @@ def test_batch_equals_items_one_by_one(kind):
         alone = shadow_visibility(one, p[i:i + 1], n[i:i + 1], recv[i:i + 1], view[i:i + 1])
         torch.testing.assert_close(both[i:i + 1], alone, atol=1e-5, rtol=0)
         assert (both[i:i + 1][~recv[i:i + 1, None].expand_as(alone)] == 1).all()
+
+
+@pytest.mark.parametrize("translate", [True, False])
+def test_affine_is_each_pairs_own_matrix(translate):
+    """Each (receiver, light) pair transformed by its own view's matrix, against float64
+    matrix products (and a batch of pairs gives each pair the bits it gets alone)."""
+    gen = torch.Generator().manual_seed(3)
+    x = torch.randn(500, 3, generator=gen) * 10
+    for m in (1, 6, 24):
+        mats = torch.randn(m, 4, 4, generator=gen)
+        sel = torch.randint(0, m, (500, 2), generator=gen)
+        got = shadows._affine(mats, x, sel, translate)
+        homo = torch.cat([x, torch.full_like(x[:, :1], float(translate))], 1).double()
+        want = (mats.double()[sel] @ homo[:, None, :, None])[..., 0]
+        torch.testing.assert_close(got.double(), want, rtol=1e-5, atol=1e-4)
+        assert torch.equal(shadows._affine(mats, x[7:8], sel[7:8], translate), got[7:8])
+
+
+def test_cube_face_is_the_dominant_axis_with_argmax_ties():
+    d = torch.tensor([[1.0, 1.0, 1.0], [-2.0, 2.0, 0.0], [0.0, -3.0, 3.0], [0.5, 0.1, -0.7],
+                      [-0.0, 0.0, 0.0], [4.0, -4.0, 1.0]])
+    g = types.SimpleNamespace(layout="cube", view=torch.zeros(1, 1, 6, 4, 4),
+                              light_position=torch.zeros(1, 1, 3))
+    face, _ = shadows._select_view(g, d, torch.zeros(6, dtype=torch.int64), None)
+    axis = d.abs().argmax(-1)
+    want = axis * 2 + (d.gather(1, axis[:, None])[:, 0] < 0).long()
+    assert torch.equal(face[:, 0], want)
