@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import torch
 
-from .._validate import check_tensor
+from .._validate import all_finite, check_tensor
 from ..numerics import compute_dtype, finish_low_precision, floor_div_exact
 from .rasterize import DEFAULT_MEMORY_BUDGET, Fragments
 
@@ -262,7 +262,7 @@ def _check_inputs(color, frags, clip_pos, faces, topology):
     if fid.numel() and int(fid.max()) >= n_faces:
         raise ValueError(f"frags: face id {int(fid.max())} out of range for F={n_faces} faces "
                          "(were the fragments rasterized from these faces?)")
-    if not bool(torch.isfinite(clip_pos.detach()).all()):
+    if clip_pos.numel() and not all_finite(clip_pos):
         raise ValueError("clip_pos: contains NaN/Inf")
     if topology is None:
         topology = antialias_topology(faces)

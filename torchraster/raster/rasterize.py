@@ -25,7 +25,13 @@ from collections.abc import Callable, Iterator
 import torch
 
 from .. import frame_pool
-from .._validate import check_frame_memory, check_has_data, check_resolution, check_tensor
+from .._validate import (
+    all_finite,
+    check_frame_memory,
+    check_has_data,
+    check_resolution,
+    check_tensor,
+)
 from ..numerics import floor_div_exact, take_columns, to_compute
 from .binning import (
     BOX_XMAX,
@@ -643,11 +649,12 @@ def check_inputs(clip_pos, faces, resolution, face_ranges):
         raise ValueError("clip_pos: batch size must be at least 1")
     faces = faces.to(device=clip_pos.device, dtype=torch.int64)
     n_vert = clip_pos.shape[1]
-    if faces.numel() and (int(faces.min()) < 0 or int(faces.max()) >= n_vert):
+    lo, hi = (int(v) for v in torch.aminmax(faces)) if faces.numel() else (0, -1)
+    if lo < 0 or hi >= n_vert:
         raise ValueError(
             f"faces: vertex indices must be in [0, {n_vert}) for clip_pos with V={n_vert}; "
-            f"got range [{int(faces.min())}, {int(faces.max())}]")
-    if not bool(torch.isfinite(clip_pos).all()):
+            f"got range [{lo}, {hi}]")
+    if clip_pos.numel() and not all_finite(clip_pos):
         bad = int((~torch.isfinite(clip_pos)).any(-1).sum())
         raise ValueError(f"clip_pos: {bad} vertex position(s) contain NaN/Inf")
     if faces.shape[0] >= 2**31:
