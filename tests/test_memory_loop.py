@@ -71,7 +71,9 @@ def test_deforming_training_loop_memory_is_flat():
     renders = renderer.shadow_cache.renders
     losses = [step() for _ in range(150)]
     gc.collect()
-    assert renderer.shadow_cache.renders - renders == 150 * 6  # new cube maps every step
+    # the positions need gradients through PCF: every step renders new cube maps with the
+    # casters' face ids (for those gradients), outside the cache, which keeps no face ids
+    assert renderer.shadow_cache.renders == renders
     assert renderer.shadow_cache.nbytes <= renderer.shadow_cache.max_bytes
     assert len(renderer.mip_cache) <= 2
     assert frame_pool.pooled_bytes() <= frame_pool.POOL_BYTES
