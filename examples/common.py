@@ -21,9 +21,10 @@ import trimesh
 
 import torchraster as tr
 from torchraster.post import encode_srgb
+from torchraster.testing.assets import data_dir
 
 ROOT = Path(__file__).resolve().parents[1]
-BUNNY = ROOT.parent / "shared" / "data" / "meshes" / "stanford-bunny.obj"
+BUNNY = data_dir() / "meshes" / "stanford-bunny.obj"  # optional ($TORCHRASTER_DATA)
 
 
 def add_common_args(parser: argparse.ArgumentParser, *, iterations: int, resolution: int,
@@ -65,7 +66,7 @@ def normalized(vertices: np.ndarray) -> np.ndarray:
 
 def load_target(name: str) -> tuple[trimesh.Trimesh, str]:
     """A target mesh, normalised into the unit sphere: ``"bunny"`` (the Stanford bunny of
-    ../shared/data; Spot when that file is absent), ``"spot"`` (shipped), ``"ellipsoid"``
+    $TORCHRASTER_DATA; Spot when that file is absent), ``"spot"`` (shipped), ``"ellipsoid"``
     (an analytic stretched icosphere, for tests) or a mesh file path.
 
     Returns:

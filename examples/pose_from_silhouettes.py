@@ -172,7 +172,7 @@ def parser() -> argparse.ArgumentParser:
     common.add_common_args(p, iterations=200, resolution=128, views=8,
                            out="out/inverse_pose")
     p.add_argument("--mesh", default="spot",
-                   help="spot (default), bunny (../shared/data), ellipsoid or a mesh file")
+                   help="spot (default), bunny ($TORCHRASTER_DATA), ellipsoid or a mesh file")
     p.add_argument("--perturb-deg", type=float, default=20.0,
                    help="starting rotation error in degrees (default 20)")
     p.add_argument("--perturb-shift", type=float, default=0.25,

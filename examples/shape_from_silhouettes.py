@@ -1,6 +1,6 @@
 """Deform an icosphere into a target shape from its silhouettes (and shading) in 16 views.
 
-The target (the Stanford bunny of ../shared/data, Spot when that is absent, or
+The target (the Stanford bunny of $TORCHRASTER_DATA, Spot when that is absent, or
 ``--target``) is rendered from ``--views`` cameras around it: its silhouettes at 4x
 supersampling without antialiasing (the pixels' true area coverage) and, for the optional
 shading term, the same views lit by a headlight. An icosphere is then deformed by Adam on
@@ -256,7 +256,7 @@ def parser() -> argparse.ArgumentParser:
     common.add_common_args(p, iterations=200, resolution=96, views=16,
                            out="out/inverse_shape")
     p.add_argument("--target", default="bunny",
-                   help="bunny (default; Spot when ../shared/data is absent), spot, "
+                   help="bunny (default; Spot when $TORCHRASTER_DATA is absent), spot, "
                         "ellipsoid or a mesh file")
     p.add_argument("--subdivisions", type=int, default=4,
                    help="icosphere subdivisions (default 4: 2,562 vertices)")

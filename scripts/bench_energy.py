@@ -39,12 +39,13 @@ from torchraster.hdr_io import read_hdr
 from torchraster.shading import Lights, shade
 from torchraster.shading.ibl import Environment, dfg_lut, lookup_dfg, shade_ibl
 from torchraster.shading.lights import DirectionalLights, PointLights
+from torchraster.testing.assets import data_dir
 from torchraster.testing.reference_brdf import furnace_hemisphere, heitz_v, walter_ggx
 from torchraster.texture import latlong_directions, latlong_solid_angles
 
 ROOT = Path(__file__).resolve().parent.parent
 IMAGES = ROOT / "docs" / "images"
-ENVMAPS = ROOT.parent / "shared" / "data" / "envmaps"
+ENVMAPS = data_dir() / "envmaps"
 F64 = torch.float64
 THETAS = (0.0, 0.5, 1.0, 1.4)
 

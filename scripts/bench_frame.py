@@ -1,8 +1,9 @@
 """Full-frame benchmark: our ``Renderer`` against pyrender on Mesa llvmpipe.
 
-The same glTF model (``../shared/data/gltf/DamagedHelmet``, full-resolution textures), the
-same cameras (orbiting the model's bounding sphere, fov 45 deg, infinite far plane), two
-point lights and a directional light, PBR shading, at 256² and 512², batch 1 and 8. Rows:
+The same glTF model (``gltf/DamagedHelmet`` of the asset folder ``$TORCHRASTER_DATA``,
+full-resolution textures), the same cameras (orbiting the model's bounding sphere, fov 45
+deg, infinite far plane), two point lights and a directional light, PBR shading, at 256²
+and 512², batch 1 and 8. Rows:
 
 * ours forward (``torch.no_grad``): ``Renderer(...)(scene, view, proj, lights).image``;
 * ours forward + backward: the same with gradients to the vertex positions and the light
@@ -46,7 +47,10 @@ import sys
 import time
 from pathlib import Path
 
-DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
+# the asset folder as torchraster.testing.assets.data_dir() names it (not imported: this
+# script also times older checkouts, which lack that module)
+DATA = Path(os.environ.get("TORCHRASTER_DATA")
+            or Path(__file__).resolve().parents[2] / "shared" / "data")
 MODEL = DATA / "gltf" / "DamagedHelmet" / "DamagedHelmet.gltf"
 FOV_DEG = 45.0
 ELEVATION_DEG = 12.0

@@ -45,18 +45,17 @@ from torchraster.post import (
     gaussian_blur,
 )
 from torchraster.post.dof import COC_RAMP_PX
+from torchraster.testing.assets import data_dir
 
 ROOT = Path(__file__).resolve().parent.parent
 IMAGES = ROOT / "docs" / "images"
-ENVMAPS = Path("/work/shared/data/envmaps")
-if not ENVMAPS.is_dir():
-    ENVMAPS = ROOT.parent / "shared" / "data" / "envmaps"
+ENVMAPS = data_dir() / "envmaps"
 
 
 # ----------------------------------------------------------------------------- scenes
 
 def load_hdr_crop(h: int, w: int, name: str = "pedestrian_overpass_1k") -> torch.Tensor:
-    """(1, 3, h, w) linear HDR: an env map of /work/shared/data around its sun, 2x smaller.
+    """(1, 3, h, w) linear HDR: an env map of the asset folder around its sun, 2x smaller.
 
     Uses torchraster.hdr_io.read_hdr when present, else the procedural scene.
     """

@@ -34,6 +34,7 @@ from torchraster.anisotropic import anisotropic_footprint, sample_anisotropic_de
 from torchraster.hdr_io import read_hdr
 from torchraster.shading import ibl
 from torchraster.shading.brdf import d_ggx
+from torchraster.testing.assets import data_dir
 from torchraster.testing.reference_texture import (
     checkerboard,
     checkerboard_plane_reference,
@@ -48,7 +49,7 @@ from torchraster.texture import (
 
 ROOT = Path(__file__).resolve().parent.parent
 IMAGES = ROOT / "docs" / "images"
-ENVMAPS = ROOT.parent / "shared" / "data" / "envmaps"
+ENVMAPS = data_dir() / "envmaps"
 
 
 def timed(fn, repeats: int, warmup: bool = True):  # noqa: ANN001, ANN201
@@ -252,7 +253,7 @@ def irradiance_reference(env: torch.Tensor, normals: torch.Tensor) -> torch.Tens
 def bench_ibl(quick: bool, images: bool) -> str:
     path = ENVMAPS / "venice_sunset_1k.hdr"
     if not path.exists():
-        return "## IBL quality\n\n(skipped: ../shared/data/envmaps not present)\n"
+        return "## IBL quality\n\n(skipped: no envmaps/ in the asset folder, $TORCHRASTER_DATA)\n"
     env = read_hdr(path)
     gen = torch.Generator().manual_seed(0)
     nd = 64 if quick else 256

@@ -1,4 +1,5 @@
-"""Reference pictures for docs/images from the assets in ../shared/data (skips when absent).
+"""Reference pictures for docs/images from the optional asset folder ($TORCHRASTER_DATA,
+``torchraster.testing.assets``; skips when absent).
 
     python scripts/make_pictures.py [--size 320]
 
@@ -28,9 +29,10 @@ from torchraster.hdr_io import read_hdr
 from torchraster.pipeline import build_camera
 from torchraster.post.tonemap import tone_curve
 from torchraster.shading.ibl import Environment
+from torchraster.testing.assets import data_dir
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT.parent / "shared" / "data"
+DATA = data_dir()
 OUT = ROOT / "docs" / "images"
 ASSETS = {
     "helmet": ("gltf/DamagedHelmet/DamagedHelmet.gltf", 25.0),

@@ -1,4 +1,5 @@
-"""Shared pytest fixtures: the ../shared/data assets (skipped cleanly when absent)."""
+"""Shared pytest fixtures: the optional asset folder (``torchraster.testing.assets``:
+``$TORCHRASTER_DATA``; tests using it are skipped cleanly when it is absent)."""
 
 from __future__ import annotations
 
@@ -7,14 +8,16 @@ from pathlib import Path
 import pytest
 import torch
 
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+from torchraster.testing.assets import ENV_VAR, data_dir
+
+SHARED_DATA = data_dir()
 
 
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
-    """Path to ../shared/data; tests using it are skipped on machines without it."""
+    """Path to the asset folder; tests using it are skipped on machines without it."""
     if not SHARED_DATA.is_dir():
-        pytest.skip("../shared/data is not present on this machine")
+        pytest.skip(f"no asset folder ({SHARED_DATA}); set {ENV_VAR} to use one")
     return SHARED_DATA
 
 
