@@ -37,8 +37,8 @@ zero-area triangle), rendered forward and backward through ``tr.Renderer``:
   of the same stage as three objects, in float32, float64, float16 or bfloat16, supersampled
   1x to 3x, batch 1-2 (with face_ranges dropping an object), sometimes a MASK cut-out; the
   labels' invariants are checked (ids in range, semantic = category of instance, visible
-  inside amodal, NOCS in [0, 1], distance >= depth, all 0 where empty) and counted as
-  "label errors".
+  inside amodal, amodal = each object rasterized alone when not supersampled, NOCS in
+  [0, 1], distance >= depth, all 0 where empty) and counted as "label errors".
 - motion: the flow / motion channels (flow_forward, flow_backward, their validity, motion)
   of the stage with the sphere moved by 0 to 1e6 m (1e3 in half precision) and the other
   frames' cameras orbiting (0.5 to 6 m from the target), placed on a vertex, inside the
@@ -96,6 +96,8 @@ from benchmd import markdown_table, update_section
 import torchraster as tr
 from torchraster.mesh import vertex_normals, vertex_tangents
 from torchraster.motion import OtherFrame
+from torchraster.raster import rasterize_coverage
+from torchraster.renderer import _clip_positions  # the renderer's own clip positions
 from torchraster.testing.reference_raster import (
     look_at_matrix,
     perspective_matrix,
@@ -764,6 +766,17 @@ def scene_labels(gen: torch.Generator, scene: tr.RenderScene, c: Counter) -> Non
     errors += int((gb["semantic"] != scene.object_category[inst]).sum())
     visible = torch.nn.functional.one_hot(inst[:, 0], 4)[..., 1:].permute(0, 3, 1, 2).bool()
     errors += int((visible & ~amodal).sum())
+    if renderer.raster_settings.supersample == 1:  # amodal = each object rasterized alone
+        clip = _clip_positions(positions.detach(), view, proj, b)
+        items = scene.face_ranges if scene.face_ranges is not None else torch.tensor(
+            [[0, scene.faces.shape[0]]]).expand(b, 2)
+        for k, (lo, hi) in enumerate(scene.object_face_ranges().tolist()):
+            for i in range(b):
+                fr = torch.tensor([[max(lo, int(items[i, 0])), min(hi, int(items[i, 1]))]])
+                fr[:, 1] = fr[:, 1].clamp_min(fr[0, 0])
+                alone = rasterize_coverage(clip[i:i + 1], scene.faces, res,
+                                           renderer.raster_settings.cull_backfaces, fr)[0]
+                errors += int((amodal[i, k] != alone).sum())
     nocs = gb["object_coords"].float()
     errors += int(((nocs < -tol) | (nocs > 1 + tol)).any(1, keepdim=True)[~empty].sum())
     errors += int(((nocs != 0).any(1, keepdim=True) & empty).sum())

@@ -55,7 +55,6 @@ from .motion import (
 from .numerics import finish_low_precision, safe_normalize
 from .post.ssr import environment_specular, specular_weight
 from .raster import Fragments, antialias, rasterize
-from .raster.rasterize import rasterize_coverage
 from .scene import RenderScene, as_render_scene
 from .settings import (
     LIT_MODELS,
@@ -116,8 +115,6 @@ _SHADING_NEEDS = {
     "headlight": {"position", "normal", "albedo", "mask"},
     "unlit": {"albedo", "emissive", "mask"},
 }
-#: Temporaries of one chunk of the amodal pass (bytes; each item is one object of one view).
-AMODAL_MEMORY_BUDGET = 256 * 2**20
 #: The G-buffer channels that need a RenderScene identity field (the field's name).
 _LABEL_NEEDS = {"instance": ("face_object",), "semantic": ("face_object", "object_category"),
                 "amodal": ("face_object",), "object_coords": ("object_coords",)}
@@ -177,8 +174,8 @@ class RenderPlan:
             mirror ray hits (:mod:`~torchraster.post.ssr`): ``Renderer(ssr=SSR(...))``,
             ``"pbr"`` shading, no ``BLEND`` material, and some material smooth enough
             (roughness factor below the cut-off, or a metallic-roughness texture).
-        amodal: the number N of objects whose whole silhouettes are rasterized (the
-            ``amodal`` channel, step ``amodal N objects``); 0 when not requested.
+        amodal: the number N of objects whose whole silhouettes the main raster collects
+            (the ``amodal`` channel, step ``amodal N objects``); 0 when not requested.
         motion: the steps of the motion pass (:mod:`~torchraster.motion`), one per
             requested channel: ``"flow forward"``, ``"flow forward valid"``,
             ``"flow backward"``, ``"flow backward valid"``, ``"motion vectors"``.
@@ -762,7 +759,7 @@ class Renderer(nn.Module):
         if face_ranges is not None and face_ranges.shape[0] != b:
             face_ranges = face_ranges.expand(b, 2)
         frags = self._raster_memo.rasterize(clip, scene.faces, plan, _cull_mask(plan, scene),
-                                            face_ranges)
+                                            face_ranges, objects=_amodal_objects(plan, scene))
         normals = scene.normals
         if "normal" in plan.channels and normals is None:
             normals = vertex_normals(positions, scene.faces)
@@ -873,8 +870,8 @@ class Renderer(nn.Module):
         outputs = GBuffer(**{ch: getattr(gb, ch) for ch in plan.requested})
         if self.world_origin is not None:  # camera-relative: the position channel in world
             outputs = relative.world_position(outputs, gb.mask, self.world_origin)
-        if "amodal" in plan.requested:
-            outputs = outputs.replace(amodal=_amodal_masks(plan, scene, clip, face_ranges, b))
+        if "amodal" in plan.requested:  # the main raster's candidates, per object
+            outputs = outputs.replace(amodal=frags.silhouettes)
         if plan.supersample > 1:
             s = plan.supersample
             image, alpha = F.avg_pool2d(image, s), F.avg_pool2d(alpha, s)
@@ -1234,40 +1231,6 @@ def _check_label_fields(scene: RenderScene, requested: set[str]) -> None:
                     "not have (build the scene with RenderScene.from_objects, or set it)")
 
 
-def _amodal_masks(plan: RenderPlan, scene: RenderScene, clip: torch.Tensor,
-                  face_ranges: torch.Tensor | None, b: int) -> torch.Tensor:
-    """``(B, N, H, W)`` bool: each object's silhouette drawn alone (nothing occludes it).
-
-    One depth-only rasterization of B * N items, item (b, k) drawing the faces of object
-    k + 1 within batch item b's ``face_ranges``, in chunks of at most
-    :data:`AMODAL_MEMORY_BUDGET` bytes; culling as in the main pass, alpha cut-outs ignored
-    (the geometric silhouette, like shadow maps)."""
-    n = plan.amodal
-    h, w = plan.resolution
-    device = clip.device
-    objects = scene.object_face_ranges().to(device)  # (N, 2)
-    if face_ranges is None:
-        items = torch.tensor([[0, scene.faces.shape[0]]], device=device).expand(b, 2)
-    else:
-        items = face_ranges.to(device)
-    start = torch.maximum(items[:, None, 0], objects[None, :, 0]).reshape(-1)
-    end = torch.minimum(items[:, None, 1], objects[None, :, 1]).reshape(-1)
-    ranges = torch.stack([start, torch.maximum(start, end)], 1)  # (B * N, 2)
-    todo = (end > start).nonzero().flatten()  # objects with faces in the item
-    out = torch.zeros(b * n, h, w, dtype=torch.bool, device=device)
-    shared = clip.shape[0] == 1 or clip.stride(0) == 0
-    per_item = h * w * 16 + clip.shape[1] * 4 * clip.element_size()
-    chunk = max(1, AMODAL_MEMORY_BUDGET // per_item)
-    cull = _cull_mask(plan, scene)
-    with torch.no_grad():
-        for idx in todo.split(chunk):
-            pos = clip[:1].expand(idx.numel(), -1, -1) if shared else clip.index_select(
-                0, idx // n)
-            out[idx] = rasterize_coverage(pos.detach(), scene.faces, plan.resolution, cull,
-                                          ranges.index_select(0, idx))
-    return out.view(b, n, h, w)
-
-
 _MOTION_STEPS = {"flow_forward": "flow forward", "flow_forward_valid": "flow forward valid",
                  "flow_backward": "flow backward", "flow_backward_valid": "flow backward valid",
                  "motion": "motion vectors"}
@@ -1321,7 +1284,8 @@ def _motion_channels(plan: RenderPlan, scene: RenderScene, layers: Sequence, gbs
                     clip = _clip_positions(frame.positions.detach(), frame.view.detach(),
                                            frame.proj.detach(), b)
                     seen = memo.rasterize(clip, scene.faces, plan, _cull_mask(plan, scene),
-                                          face_ranges, keep=True)
+                                          face_ranges, objects=_amodal_objects(plan, scene),
+                                          keep=True)
                     other = other_depth(seen.depth, frame.proj)
                 frame.depth = other
         for k, f in enumerate(layers):
@@ -1363,28 +1327,34 @@ class _RasterMemo:
 
     def rasterize(self, clip: torch.Tensor, faces: torch.Tensor, plan: RenderPlan,
                   cull: bool | torch.Tensor, face_ranges: torch.Tensor | None, *,
-                  keep: bool = False) -> Fragments:
+                  objects: torch.Tensor | None = None, keep: bool = False) -> Fragments:
         """``rasterize(clip, faces, plan.resolution, ...)`` with the plan's options, a kept
-        raster when the same inputs were kept; ``keep`` keeps this one."""
-        if not (keep or self._kept) or clip.requires_grad:
+        raster when the same inputs were kept; ``keep`` keeps this one. ``objects``: the
+        ``(F,)`` object id 1..N of each face when the plan wants amodal masks (then in
+        ``frags.silhouettes``, ``(B, N, H, W)``)."""
+        def draw() -> Fragments:
             return rasterize(clip, faces, plan.resolution, cull_backfaces=cull,
                              face_ranges=face_ranges, derivatives=plan.derivatives,
-                             layers=plan.layers)
+                             layers=plan.layers,
+                             groups=None if objects is None else objects - 1,
+                             num_groups=plan.amodal if objects is not None else None)
+
+        if not (keep or self._kept) or clip.requires_grad:
+            return draw()
         key = (content_key(clip), plan.resolution, plan.derivatives, plan.layers)
         found = self._kept.get(key)
         if found is not None:
-            kept_faces, version, kept_cull, kept_ranges, frags = found
+            kept_faces, version, kept_cull, kept_ranges, kept_objects, frags = found
             if (kept_faces is faces and version == faces._version
-                    and _same(kept_cull, cull) and _same(kept_ranges, face_ranges)):
+                    and _same(kept_cull, cull) and _same(kept_ranges, face_ranges)
+                    and (objects is None or _same(kept_objects, objects))):
                 return frags
-        frags = rasterize(clip, faces, plan.resolution, cull_backfaces=cull,
-                          face_ranges=face_ranges, derivatives=plan.derivatives,
-                          layers=plan.layers)
+        frags = draw()
         if keep:
             self._kept.pop(key, None)
             while len(self._kept) >= self._KEPT:
                 self._kept.pop(next(iter(self._kept)))  # the oldest
-            self._kept[key] = (faces, faces._version, cull, face_ranges, frags)
+            self._kept[key] = (faces, faces._version, cull, face_ranges, objects, frags)
         return frags
 
     def __deepcopy__(self, memo: dict) -> _RasterMemo:
@@ -1400,6 +1370,12 @@ def _check_group(name: str, value: object, kind: type) -> Any:
         raise TypeError(f"{name}: expected a torchraster.{kind.__name__} or None, got "
                         f"{type(value).__name__}")
     return value
+
+
+def _amodal_objects(plan: RenderPlan, scene: RenderScene) -> torch.Tensor | None:
+    """The faces' object ids when the plan wants amodal masks (the main raster then
+    collects each object's silhouette, :attr:`Fragments.silhouettes`), else None."""
+    return scene.face_object if plan.amodal else None
 
 
 def _same(a: bool | torch.Tensor | None, b: bool | torch.Tensor | None) -> bool:

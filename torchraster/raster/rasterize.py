@@ -84,6 +84,8 @@ class Fragments:
     mask:    (B, 1, H, W) float coverage (image layout)
     layers:  the K depth layers of ``rasterize(..., layers=K)``, nearest first, each a
              Fragments of these shapes; ``layers[0]`` is this object (K = 1: ``(self,)``)
+    silhouettes: (B, G, H, W) bool, with ``rasterize(..., groups=...)`` (else None): whether
+             any face of group g covers the pixel, nothing occluding it
 
     Packed form (what ``interpolate`` uses; N = covered pixels): ``pixels`` (N,) flat index
     b*H*W + i*W + j, ``items`` (N,) batch item, ``corners`` (3, N) vertex ids of the visible
@@ -117,6 +119,7 @@ class Fragments:
         self._row_front = row_front
         self._front_facing: torch.Tensor | None = None
         self.deeper: tuple[Fragments, ...] = ()  # layers 1 .. K-1 (no reference cycle)
+        self.silhouettes: torch.Tensor | None = None
         self._cache: dict[str, torch.Tensor] = {}
 
     @property
@@ -204,6 +207,8 @@ def rasterize(
     derivatives: bool = False,
     layers: int = 1,
     select: Callable[[torch.Tensor], torch.Tensor] | None = None,
+    groups: torch.Tensor | None = None,
+    num_groups: int | None = None,
     tile: int = DEFAULT_TILE,
     memory_budget: int = DEFAULT_MEMORY_BUDGET,
 ) -> Fragments:
@@ -237,6 +242,12 @@ def rasterize(
             (``face_id`` -1). The barycentric pass then costs the kept pixels only (edge
             antialiasing keeps the sub-samples of a few pixels of a large raster).
             ``layers`` must be 1.
+        groups: optional (F,) int64 group of each face in ``[-1, num_groups)`` (-1: none),
+            e.g. the object of each face: ``frags.silhouettes`` (B, G, H, W) bool then
+            holds each group's silhouette as if the group were drawn alone, exactly
+            ``rasterize_coverage`` of its faces (amodal masks), from the same candidates
+            as the visible surface (no second raster).
+        num_groups: G (default: the largest group + 1).
         tile: tile size in pixels of the binning of large triangles (and the largest block
             of small ones).
         memory_budget: bytes of temporaries per chunk; peak memory is about this plus the
@@ -268,9 +279,14 @@ def rasterize(
     clip_pos = to_compute(clip_pos)
     if select is not None and layers != 1:
         raise ValueError(f"select: needs layers=1, got layers={layers}")
-    keys = resolve_keys(clip_pos, faces, (h, w), cull_backfaces, face_ranges, int(tile),
-                        memory_budget, BYTES_PER_PIXEL * layers, layers=layers)
     b = clip_pos.shape[0]
+    observe, silhouettes = None, None
+    if groups is not None:
+        silhouettes, observe = _silhouette_observer(groups, num_groups, faces.shape[0],
+                                                    (b, h, w), clip_pos.device)
+    keys = resolve_keys(clip_pos, faces, (h, w), cull_backfaces, face_ranges, int(tile),
+                        memory_budget, BYTES_PER_PIXEL * layers, layers=layers,
+                        observe=observe)
     if select is not None:  # drop the pixels not selected before the barycentric pass
         nearest = keys[0].view(b, h, w)
         keep = select((nearest << 32) >> 32)  # the face ids (-1 for EMPTY_KEY)
@@ -280,7 +296,36 @@ def rasterize(
         nearest.masked_fill_(~keep, EMPTY_KEY)
     frags = [_fragments_from_keys(clip_pos, faces, k, (b, h, w), derivatives) for k in keys]
     frags[0].deeper = tuple(frags[1:])
+    if silhouettes is not None:  # (B, G + 1, H, W): the last group collects face group -1
+        frags[0].silhouettes = silhouettes[:, :-1]
     return frags[0]
+
+
+def _silhouette_observer(groups: torch.Tensor, num_groups: int | None, n_faces: int,
+                         shape: tuple[int, int, int], device: torch.device):
+    """The ``(B, G + 1, H, W)`` bool masks of ``rasterize(groups=...)`` and the
+    ``observe(pixel, key)`` that marks every candidate (pixel, face) in its face's group."""
+    check_tensor("groups", groups, (n_faces,), integer=True)
+    groups = groups.to(device=device, dtype=torch.int64)
+    lo, hi = (int(v) for v in torch.aminmax(groups)) if n_faces else (-1, -1)
+    g = hi + 1 if num_groups is None else int(num_groups)
+    if lo < -1 or hi >= g:
+        raise ValueError(f"groups: expected values in [-1, {g}) (num_groups={num_groups}), "
+                         f"got [{lo}, {hi}]")
+    b, h, w = shape
+    hw = h * w
+    masks = torch.zeros(b, g + 1, h, w, dtype=torch.bool, device=device)
+    # row of each face in (G + 1) * H * W: group -1 writes into the spare last group
+    offset = torch.where(groups < 0, g, groups) * hw
+    flat = masks.view(-1)
+
+    def observe(pixel: torch.Tensor, key: torch.Tensor) -> None:
+        at = offset.index_select(0, key & 0x7FFFFFFF)
+        if b > 1:  # pixel = item * H * W + p: the item's block of G + 1 masks
+            at += torch.div(pixel, hw, rounding_mode="floor") * (g * hw)
+        flat.index_fill_(0, at.add_(pixel), True)
+
+    return masks, observe
 
 
 def rasterize_depth(
@@ -418,11 +463,12 @@ class Coverage:
 
 def resolve_keys(clip_pos, faces, resolution, cull_backfaces, face_ranges, tile,
                  memory_budget, bytes_per_pixel, *, layers: int = 1,
-                 coverage: Coverage | None = None) -> torch.Tensor:
+                 coverage: Coverage | None = None, observe=None) -> torch.Tensor:
     """The no-grad visibility pass: ``(K, B*H*W)`` int64 keys (depth bits << 32 | face),
     the K smallest distinct ones per pixel in increasing order, ``EMPTY_KEY`` where there
     are fewer. Arguments as in :func:`rasterize` (checked); ``bytes_per_pixel`` is the
-    frame memory the caller will need per pixel (checked up front)."""
+    frame memory the caller will need per pixel (checked up front); ``observe(pixel, key)``,
+    if given, sees every covered candidate (occlusion culling is then off)."""
     coverage = coverage or Coverage()
     h, w = resolution
     b = clip_pos.shape[0]
@@ -433,7 +479,8 @@ def resolve_keys(clip_pos, faces, resolution, cull_backfaces, face_ranges, tile,
     # Occlusion culling: front faces first, then back faces that a conservative depth
     # test against the tiles resolved so far cannot prove hidden. Exact: a skipped
     # triangle's keys are all larger than the keys already in its pixels.
-    cull_hidden = layers == 1 and type(coverage) is Coverage and OCCLUSION_CULLING
+    cull_hidden = (layers == 1 and type(coverage) is Coverage and OCCLUSION_CULLING
+                   and observe is None)
     with torch.no_grad():
         # Visibility runs in float32 (float64 for float64 input), whatever the input dtype.
         pos = clip_pos.detach()
@@ -447,7 +494,8 @@ def resolve_keys(clip_pos, faces, resolution, cull_backfaces, face_ranges, tile,
             front = screen.area < 0
             if not (cull_hidden and screen.valid is not None
                     and _back_candidates(screen, front) >= OCCLUSION_MIN_WORK):
-                _rasterize_group(screen, None, coverage, keys, (h, w), tile, max_candidates)
+                _rasterize_group(screen, None, coverage, keys, (h, w), tile, max_candidates,
+                                 observe)
                 continue
             _rasterize_group(screen, (screen.valid & front).nonzero().squeeze(1), coverage,
                              keys, (h, w), tile, max_candidates)
@@ -483,9 +531,10 @@ def _back_candidates(screen: ScreenTriangles, front: torch.Tensor) -> int:
     return int(size.masked_fill_(front | ~screen.valid, 0).sum())
 
 
-def _rasterize_group(screen, select, coverage, keys, resolution, tile, max_candidates):
+def _rasterize_group(screen, select, coverage, keys, resolution, tile, max_candidates,
+                     observe=None):
     """Bin, test and resolve the screen triangles ``select`` (None: the valid ones) into
-    ``keys`` (in place)."""
+    ``keys`` (in place), showing every candidate to ``observe(pixel, key)`` if given."""
     screen, runs, n_small = sort_by_block(screen, resolution, tile, select)
     if len(screen) == 0:
         return
@@ -496,11 +545,15 @@ def _rasterize_group(screen, select, coverage, keys, resolution, tile, max_candi
         if len(few) > 1 and sum(r[0] * r[1] * r[3] for r in few) < 2**24:
             runs = [r for r in runs if r[0] * r[1] * r[3] >= RAGGED_RUN_CANDIDATES]
             for found in ragged_keys(setup, few, resolution, max_candidates):
+                if observe is not None:
+                    observe(*found)
                 insert_layers(keys, *found)
     for records in bin_triangles(setup, runs, n_small, resolution, tile, max_candidates,
                                  margin=coverage.margin):
         found = coverage.cover(setup, records, resolution)
         if found is not None:
+            if observe is not None:
+                observe(*found)
             insert_layers(keys, *found)
 
 
