@@ -97,6 +97,33 @@ def test_several_cameras_and_npy_outputs(tmp_path):
     assert depth.shape == (1, 32, 32) and np.isfinite(depth).all() and depth.max() > 0
 
 
+def test_png_compression_levels_write_the_same_pixels(tmp_path):
+    """``outputs.png_compression`` trades bytes for time only: levels 0 and 9 decode to the
+    same pixels (8-bit colour, 16-bit depth and face ids) as the npy values encode, and the
+    schema's default is the writer's."""
+    from torchraster.config.schema import OutputConfig
+    from torchraster.pipeline import PNG_COMPRESSION
+
+    assert OutputConfig().png_compression == PNG_COMPRESSION
+    files = {}
+    for level in (0, 9):
+        text = (f"scene:\n  mesh: {SPOT}\nrender:\n  resolution: 40\noutputs:\n"
+                f"  channels: [color, depth, face_id]\n  formats: [png, npy]\n"
+                f"  png_compression: {level}\n")
+        tr.render_to_files(tr.parse_config(text), tmp_path / str(level))
+        files[level] = {n: skio.imread(next((tmp_path / str(level)).rglob(n + ".png")))
+                        for n in ("color", "depth", "face_id")}
+    for name in ("color", "depth", "face_id"):
+        assert np.array_equal(files[0][name], files[9][name]), name
+        size = [next((tmp_path / str(lv)).rglob(name + ".png")).stat().st_size for lv in (0, 9)]
+        assert size[1] < size[0], name
+    face_id = np.load(next((tmp_path / "9").rglob("face_id.npy")))[0]
+    assert files[9]["face_id"].dtype == np.uint16
+    assert np.array_equal(files[9]["face_id"], ((face_id + 1) % 65536).astype(np.uint16))
+    with pytest.raises(tr.ConfigError, match="outputs.png_compression"):
+        tr.parse_config(f"scene:\n  mesh: {SPOT}\noutputs:\n  png_compression: 10\n")
+
+
 def test_material_overrides_and_transform_apply(tmp_path):
     from torchraster.config import build_scene
 

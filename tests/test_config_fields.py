@@ -50,6 +50,8 @@ METADATA: dict[str, str] = {
     "outputs.exports": "dataset files made from the rendered views after the run "
                        "(tests/test_dataset_labels.py checks them)",
     "outputs.previews": "extra PNGs of the same ids in colours (tests/test_dataset_labels.py)",
+    "outputs.png_compression": "zlib level of the same lossless PNGs "
+                               "(tests/test_config_cli.py reads them back at levels 0 and 9)",
     "outputs.track_points": "query points of the tracks export, made from the rendered files "
                             "(tests/test_dataset_randomize.py)",
     "scene.objects.keypoints": "projected into the manifest records, not drawn "

@@ -401,3 +401,32 @@ def test_python_api_under_torchrun_leaves_its_process_group(dataset, tmp_path):
     assert res.returncode == 0, res.stderr[-2000:]
     lines = [x for x in res.stdout.splitlines() if x.startswith("left")]
     assert lines == ["left False 9"] * 2, res.stdout
+
+
+def test_writer_core_leaves_one_core_to_the_writer(monkeypatch):
+    """Beside the writer thread, torch's threads drop by one when they would use every
+    core, and come back after the run; never below 1, never when OMP_NUM_THREADS fixes
+    them."""
+    from torchraster.distributed import writer_core
+
+    before = torch.get_num_threads()
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    try:
+        torch.set_num_threads(2)
+        with writer_core() as n:
+            assert n == torch.get_num_threads() == 1
+        assert torch.get_num_threads() == 2
+        monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1, 2, 3}, raising=False)
+        with writer_core() as n:  # threads below the cores: the writer has its own
+            assert n == 2
+        monkeypatch.setenv("OMP_NUM_THREADS", "2")
+        monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+        with writer_core() as n:  # the user's choice
+            assert n == 2
+        torch.set_num_threads(1)
+        monkeypatch.delenv("OMP_NUM_THREADS")
+        with writer_core() as n:
+            assert n == 1
+    finally:
+        torch.set_num_threads(before)

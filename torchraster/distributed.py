@@ -350,7 +350,7 @@ def _render_dataset(configs: list[DatasetConfig], out_dir: str | Path,
     reported: set = set()
     shard = manifest.ShardWriter(out_dir)
     try:  # one object at a time: its scene loads once for its consecutive views
-        with bar.redirect_output():  # warnings above the bar, not onto its line
+        with bar.redirect_output(), writer_core():  # warnings above the bar, not onto its line
             for (ci, oi), grouped in itertools.groupby((jobs[i] for i in mine),
                                                        key=lambda j: (j.config, j.obj)):
                 w, f = _render_group(list(grouped), configs[ci], plans[ci][oi], out_dir,
@@ -403,6 +403,32 @@ def write_exports(out_dir: Path, configs: list[DatasetConfig],
     return written
 
 
+@contextlib.contextmanager
+def writer_core() -> Iterator[int]:
+    """Leave one core to the writer thread while the views render: torch's intra-op threads
+    are set to one fewer than this process's cores when they would use them all (and
+    ``OMP_NUM_THREADS`` does not fix them), then restored. Yields the threads in use.
+
+    A view's files are encoded in a writer thread while the next view renders; with every
+    core in torch's thread pool the two contend (each parallel op waits at a barrier for a
+    descheduled thread). On 2 cores (configs/dataset_movi.yaml, docs/benchmarks.md, dataset)
+    a steady frame took 184 ms with 2 torch threads and 135 ms with 1 beside the writer.
+    Every view of a run renders with the same thread count (reductions split by thread
+    could otherwise round differently in a view re-rendered alone).
+    """
+    threads = torch.get_num_threads()
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (
+        os.cpu_count() or 1)
+    if threads < 2 or threads < cores or "OMP_NUM_THREADS" in os.environ:
+        yield threads
+        return
+    torch.set_num_threads(threads - 1)
+    try:
+        yield threads - 1
+    finally:
+        torch.set_num_threads(threads)
+
+
 def _render_group(group: list[_Job], dc: DatasetConfig, obj: pipeline.ObjectPlan,
                   out_dir: Path, device, world: World, shard: manifest.ShardWriter,
                   bar: GlobalProgress, say: Callable[[str], None], prefix: str, verbose: bool,
@@ -440,7 +466,7 @@ def _render_group(group: list[_Job], dc: DatasetConfig, obj: pipeline.ObjectPlan
         """Write a view's files, then its record (in the writer thread)."""
         t1 = time.perf_counter()
         files = pipeline.write_outputs(result, out_dir / job.key, cfg.outputs.formats,
-                                       cfg.outputs.previews)
+                                       cfg.outputs.previews, cfg.outputs.png_compression)
         shard.append(manifest.view_record(
             key=job.key, config=dc.name, config_file=dc.path, cfg=obj.config,
             cfg_hash=cfg_hash, spec=job.spec, mesh=obj.mesh, result=result, files=files,

@@ -433,18 +433,34 @@ def sweep_temp_files(folder: Path) -> list[Path]:
     return removed
 
 
+#: zlib level of the PNGs the batch command writes (``outputs.png_compression``): level 1
+#: writes a labelled 256² view's 12 PNGs in ~40 % of level 6's time for ~35 % more bytes
+#: (docs/benchmarks.md, dataset); PNG is lossless at every level.
+PNG_COMPRESSION = 1
+
+
+def write_png(path: Path, image: np.ndarray, compression: int = PNG_COMPRESSION) -> None:
+    """Write a ``(H, W)`` or ``(H, W, 3 | 4)`` uint8 / ``(H, W)`` uint16 array as PNG at
+    zlib level ``compression`` (0-9), atomically (:func:`atomic_write`)."""
+    from PIL import Image
+
+    if image.dtype == np.uint16 and image.ndim != 2:
+        raise ValueError(f"{path}: 16-bit PNGs are written single-channel, got shape "
+                         f"{image.shape}")
+    atomic_write(Path(path), lambda tmp: Image.fromarray(np.ascontiguousarray(image)).save(
+        tmp, format="PNG", compress_level=int(compression)))
+
+
 def write_outputs(result: ViewResult, out_dir: str | Path, formats: list[str],
-                  previews: bool = False) -> list[Path]:
+                  previews: bool = False, png_compression: int = PNG_COMPRESSION) -> list[Path]:
     """Write a view's channels as ``<out_dir>/<channel>.<fmt>``; returns the written paths.
     ``amodal`` is always one ``amodal.npy`` ``(N, H, W)`` uint8 stack; ``instance`` and
     ``semantic`` are exact (16-bit PNG, int32 npy), with ``previews`` also
-    ``<channel>_preview.png`` in distinct colours.
+    ``<channel>_preview.png`` in distinct colours; PNGs at zlib level ``png_compression``.
 
     Raises:
         OutputError: naming the file that could not be written.
     """
-    from skimage import io as skio
-
     out_dir = Path(out_dir)
     sweep_temp_files(out_dir)
     written = []
@@ -461,7 +477,7 @@ def write_outputs(result: ViewResult, out_dir: str | Path, formats: list[str],
         if ids and previews:  # previews are PNGs whatever the formats
             path = out_dir / f"{name}_preview.png"
             rgb = (id_preview(img).permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
-            atomic_write(path, lambda p, a=rgb: skio.imsave(p, a, check_contrast=False))
+            write_png(path, rgb, png_compression)
             written.append(path)
         if "png" in formats:
             exact = name == "face_id" or ids
@@ -472,7 +488,7 @@ def write_outputs(result: ViewResult, out_dir: str | Path, formats: list[str],
             arr = (arr * (65535 if bits16 else 255) + 0.5).astype(np.uint16 if bits16 else np.uint8)
             arr = arr[..., 0] if arr.shape[-1] == 1 else arr
             path = out_dir / f"{name}.png"
-            atomic_write(path, lambda p, a=arr: skio.imsave(p, a, check_contrast=False))
+            write_png(path, arr, png_compression)
             written.append(path)
         if "npy" in formats:
             path = out_dir / f"{name}.npy"
@@ -545,5 +561,5 @@ def render_to_files(cfg: RenderFile, out_dir: str | Path, device: str = "cpu") -
     for render in iter_render(cfg, device):
         r = render()
         written += write_outputs(r, view_folder(out_dir, cfg, r.name), cfg.outputs.formats,
-                                 cfg.outputs.previews)
+                                 cfg.outputs.previews, cfg.outputs.png_compression)
     return written

@@ -972,6 +972,10 @@ class OutputConfig(_Strict):
         "`instance`, `object_coords`, `depth` as npy)")
     previews: bool = Field(False, description="also write `instance_preview.png` / "
                            "`semantic_preview.png`: ids in distinct colours")
+    png_compression: Annotated[int, Field(ge=0, le=9)] = Field(
+        1, description="zlib level of the PNGs (0 none .. 9 smallest; lossless at every "
+        "level): 1 writes a labelled 256² view's PNGs in ~40 % of level 6's time for ~35 % "
+        "more bytes")
     track_points: Annotated[int, Field(ge=1, le=1_000_000)] = Field(
         256, description="query points per video of the `tracks` export (TAP-Vid style: "
         "drawn among the first frame's covered pixels)")

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..manifest import MANIFEST, read_manifest
 from ..pipeline import atomic_write
+from ..pipeline import write_png as pipeline_write_png
 
 #: Where the exporters write, relative to the output folder.
 EXPORTS = Path("exports")
@@ -160,10 +161,8 @@ def write_json(path: Path, data) -> Path:
 
 
 def write_png(path: Path, image: np.ndarray) -> Path:
-    """Write a uint8 / uint16 image as PNG, atomically."""
-    from skimage import io as skio
-
-    atomic_write(path, lambda tmp: skio.imsave(tmp, image, check_contrast=False))
+    """Write a uint8 / uint16 image as PNG, atomically (:func:`pipeline.write_png`)."""
+    pipeline_write_png(path, image)
     return path
 
 
