@@ -135,14 +135,21 @@ else:
 """
 
 
-def whole_run(ranks: int, scenes: int) -> dict:
-    """``render_dataset`` of ``scenes`` scenes in fresh processes (``ranks`` under torchrun)."""
+def whole_run(ranks: int, scenes: int, src: str | None = None) -> dict:
+    """``render_dataset`` of ``scenes`` scenes in fresh processes (``ranks`` under torchrun),
+    of the torchraster in ``src`` (a checkout) if given."""
     with tempfile.TemporaryDirectory() as tmp:
         script = Path(tmp) / "run.py"
         script.write_text(RUN)
         out = Path(tmp) / "out"
-        env = {**os.environ, "OMP_NUM_THREADS": str(max(1, (os.cpu_count() or 2) // ranks)),
-               "GLOO_SOCKET_IFNAME": "lo"}
+        # one process: torch's default threads (the batch command then leaves a core to its
+        # writer thread, distributed.writer_core); ranks: the cores split between them
+        env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
+        env["GLOO_SOCKET_IFNAME"] = "lo"
+        if src is not None:
+            env["PYTHONPATH"] = src
+        if ranks > 1:
+            env["OMP_NUM_THREADS"] = str(max(1, (os.cpu_count() or 2) // ranks))
         if ranks == 1:
             cmd = [sys.executable, str(script)]
         else:
@@ -200,6 +207,8 @@ def main() -> None:
     ap.add_argument("--scenes", type=int, default=1, help="scenes of the whole runs")
     ap.add_argument("--skip-runs", action="store_true", help="no whole-run rows")
     ap.add_argument("--no-write", action="store_true", help="print only")
+    ap.add_argument("--before", metavar="SRC", help="a checkout of an earlier tree: its whole "
+                    "runs alternate with this tree's (2 each, medians)")
     ap.add_argument("--blender", metavar="PYTHON", help="a Python with bpy: time Blender on "
                     "the same kind of scene in the same run (scripts/blender_movi.py)")
     args = ap.parse_args()
@@ -216,13 +225,26 @@ def main() -> None:
     print(markdown_table(["channel", "colour frame", "added by the label"], costs))
     rows = [["in-process, labelled frame (no files)", "1", f"{fps:.2f}",
              f"{per * 1e3:.0f} ms", f"{rss:.0f} MB (this process)"]]
+    before = ""
     if not args.skip_runs:
+        trees = [("", None)]
+        if args.before:
+            commit = subprocess.run(["git", "-C", args.before, "log", "-1", "--format=%h"],
+                                    capture_output=True, text=True).stdout.strip() or "?"
+            trees = [(f" (before: {commit})", args.before), (" (this tree)", None)]
+            before = (f"Whole runs of the tree at {commit} (before) and of this tree alternate, "
+                      "two of each, medians. ")
         for ranks in (1, 2):
-            r = whole_run(ranks, args.scenes)
-            rows.append([f"torchraster render, {args.scenes} scene(s), files + manifest + COCO",
-                         str(ranks), f"{r['written'] / r['render_s']:.2f}",
-                         f"{r['render_s'] / r['written'] * 1e3:.0f} ms",
-                         f"{r['peak_mb']:.0f} MB (largest rank)"])
+            found: dict[str, list[dict]] = {label: [] for label, _ in trees}
+            for _ in range(2 if args.before else 1):
+                for label, src in trees:
+                    found[label].append(whole_run(ranks, args.scenes, src))
+            for label, _ in trees:
+                per = statistics.median(r["render_s"] / r["written"] for r in found[label])
+                peak = max(r["peak_mb"] for r in found[label])
+                rows.append([f"torchraster render, {args.scenes} scene(s), files + manifest + "
+                             f"COCO{label}", str(ranks), f"{1 / per:.2f}",
+                             f"{per * 1e3:.0f} ms", f"{peak:.0f} MB (largest rank)"])
     print(markdown_table(["how", "processes", "frames / s", "per frame", "peak RSS"], rows))
     body = (
         "## Dataset: frames per second and the cost of labels\n\n"
@@ -237,15 +259,23 @@ def main() -> None:
         "of the first 12, PSNR of the display image against a 4096² map): the config uses "
         "512²; the rows above it say what a larger map buys and what it costs.\n\n"
         + markdown_table(["sun map", "colour frame", "time / 512²", "PSNR (dB)"], maps)
-        + "\n\nWhole labelled frames:\n\n"
+        + "\n\nWhole labelled frames. " + before + "One process uses torch's default threads "
+        "(one fewer while its writer thread encodes files, `distributed.writer_core`); two "
+        "ranks get one thread each. This machine's speed drifts by up to ~30 % within the hour "
+        "(the same labelled frame has timed 88 ms and 116 ms on one day): compare rows within "
+        "one run.\n\n"
         + markdown_table(["how", "processes", "frames / s", "per frame", "peak RSS"], rows)
         + "\n\n" + blender_text(args.blender, args.frames, fps))
     if not args.no_write:
         command = None
-        if args.blender:  # the command without this machine's path to its bpy Python
-            argv = [a if a != args.blender else "PYTHON" for a in sys.argv[1:]]
-            command = ("python " + " ".join([os.path.relpath(sys.argv[0]), *argv])
-                       + " (PYTHON: a virtualenv with `pip install bpy==5.0.1`)")
+        if args.blender or args.before:  # without this machine's paths
+            names = {args.blender: "PYTHON", args.before: "SRC"}
+            argv = [names.get(a, a) for a in sys.argv[1:]]
+            command = "python " + " ".join([os.path.relpath(sys.argv[0]), *argv])
+            if args.blender:
+                command += " (PYTHON: a virtualenv with `pip install bpy==5.0.1`)"
+            if args.before:
+                command += " (SRC: a checkout of the earlier tree)"
         update_section("dataset", body, command)
 
 
