@@ -16,7 +16,8 @@ Rasterizer scene kinds (cycled):
 
 For every scene: NaN/Inf in bary, depth of covered pixels, |depth| > 1, interpolated images,
 and the gradients of a random loss backpropagated through interpolate to clip_pos and the
-attributes. Writes section ``stress`` of docs/benchmarks.md with the counts.
+attributes; rasterize_depth resolved in bands of random heights against one pass (and its
+coverage against rasterize's). Writes section ``stress`` of docs/benchmarks.md with the counts.
 
 Renderer scene kinds (cycled), each a ground plane with a sphere resting on it (and a
 zero-area triangle), rendered forward and backward through ``tr.Renderer``:
@@ -81,6 +82,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib
 import math
 import sys
 import time
@@ -106,6 +108,7 @@ from torchraster.testing.reference_raster import (
     to_clip,
 )
 
+raster_module = importlib.import_module("torchraster.raster.rasterize")  # band size knob
 ROOT = Path(__file__).resolve().parent.parent
 
 KINDS = ("soup", "huge", "near_far", "closed", "grid")
@@ -147,6 +150,15 @@ def _check_numerics(clip: torch.Tensor, faces: torch.Tensor, res, cull: bool, ge
     loss.backward()
     c["nonfinite_grad_clip"] += int((~torch.isfinite(clip.grad)).sum())
     c["nonfinite_grad_attrs"] += int((~torch.isfinite(attrs.grad)).sum())
+    # rasterize_depth in bands of rows (forced: random band heights) against one pass
+    whole = tr.raster.rasterize_depth(clip.detach(), faces, res, cull)
+    band_pixels, raster_module.DEPTH_BAND_PIXELS = raster_module.DEPTH_BAND_PIXELS, max(
+        1, clip.shape[0] * res[1] * _randint(gen, 1, 40))
+    try:
+        banded = tr.raster.rasterize_depth(clip.detach(), faces, res, cull)
+    finally:
+        raster_module.DEPTH_BAND_PIXELS = band_pixels
+    c["bands_vs_whole"] += int((banded != whole).sum() + (torch.isfinite(whole) != hit).sum())
     return frags
 
 
@@ -324,11 +336,12 @@ COLUMNS = [
     ("nonfinite_image", "NaN/Inf image"), ("nonfinite_grad_clip", "NaN/Inf grad clip_pos"),
     ("nonfinite_grad_attrs", "NaN/Inf grad attrs"), ("cracks", "cracks (px)"),
     ("grid_pixels", "grid pixels"), ("double_hits", "double hits (px)"),
-    ("whole_vs_alone", "whole != alone (px)"), ("exceptions", "exceptions"),
+    ("whole_vs_alone", "whole != alone (px)"), ("bands_vs_whole", "depth in bands != whole (px)"),
+    ("exceptions", "exceptions"),
 ]
 PROBLEMS = {"nonfinite_bary", "nonfinite_depth", "depth_out_of_range", "bad_empty",
             "nonfinite_image", "nonfinite_grad_clip", "nonfinite_grad_attrs", "cracks",
-            "double_hits", "whole_vs_alone", "exceptions"}
+            "double_hits", "whole_vs_alone", "bands_vs_whole", "exceptions"}
 
 
 def picture(path: Path) -> None:

@@ -126,3 +126,35 @@ def test_key_depth_matches_its_definition():
     # finite depths round-trip
     fin = torch.isfinite(d) & (keys != EMPTY_KEY)
     assert torch.equal(key_depth(keys)[fin], d[fin])
+
+
+@pytest.mark.parametrize("budget", [2**30, 48 * 48 * 16, 48 * 48 * 16 * 2])
+def test_maps_rendered_in_place_and_in_bands_are_the_same(monkeypatch, budget):
+    """Large maps go straight into the group's maps (``_map_rows``: no chunk buffer) and
+    their depth is resolved in bands of rows (``DEPTH_BAND_PIXELS``); forced on 48² maps,
+    every map is bit-identical to the ordinary path's (chunks of one view, of two, all)."""
+    import importlib
+
+    shadows = importlib.import_module("torchraster.shading.shadows")
+    raster = importlib.import_module("torchraster.raster.rasterize")
+    pos, faces, bounds, view, proj = _scene()
+    groups = _groups("pcf", bounds, view, proj)
+    render_shadow_maps(groups, pos, faces, memory_budget=budget)
+    want = [g.depth.clone() for g in groups]
+    calls = []
+    direct = shadows._map_rows
+
+    def spy(*args):
+        got = direct(*args)
+        calls.append(got is not None)
+        return got
+
+    monkeypatch.setattr(shadows, "DIRECT_MAP_TEXELS", 0)
+    monkeypatch.setattr(shadows, "_map_rows", spy)
+    monkeypatch.setattr(raster, "DEPTH_BAND_PIXELS", 48 * 20)
+    groups = _groups("pcf", bounds, view, proj)
+    render_shadow_maps(groups, pos, faces, memory_budget=budget)
+    assert any(calls) == (budget < 2**30)  # one chunk of every group's views: not in place
+    for a, g in zip(want, groups, strict=True):
+        assert torch.equal(a, g.depth)
+    assert sum(int(torch.isfinite(a).sum()) for a in want) > 1000

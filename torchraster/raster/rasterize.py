@@ -337,13 +337,20 @@ def rasterize_depth(
     *,
     tile: int = DEFAULT_TILE,
     memory_budget: int = DEFAULT_MEMORY_BUDGET,
+    out: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Depth-only rasterization (shadow maps, depth pre-passes): the visibility half of
     :func:`rasterize` without the barycentric pass, so no gradients.
 
+    Frames of more than :data:`DEPTH_BAND_PIXELS` pixels are resolved in bands of rows
+    (:func:`resolve_keys` ``rows=``; identical values), so the int64 resolve keys never
+    take more than a band (a 4096² shadow-map face: 16 MB instead of 128 MB).
+
     Args:
         clip_pos, faces, resolution, cull_backfaces, face_ranges, tile, memory_budget: as
             in :func:`rasterize` (same coverage rule, clipping and depth resolve).
+        out: optional ``(B, H, W)`` float32 tensor to write the result into (e.g. the
+            shadow maps themselves: no frame-sized temporary).
 
     Returns:
         ``(B, H, W)`` float32 NDC z of the nearest surface, clamped to [-1, 1], ``+inf``
@@ -358,9 +365,27 @@ def rasterize_depth(
         tensor([[[ 0.5000,  0.5000],
                  [-0.5000,  0.5000]]])
     """
-    keys = _nearest_keys(clip_pos, faces, resolution, cull_backfaces, face_ranges, tile,
-                         memory_budget)
-    return key_depth(keys)
+    clip_pos, faces, (h, w), face_ranges = check_inputs(clip_pos, faces, resolution,
+                                                         face_ranges)
+    cull_backfaces = check_options(clip_pos, faces, cull_backfaces, tile)
+    b = clip_pos.shape[0]
+    if out is None:
+        check_frame_memory(f"resolution ({h}, {w}) at batch {b}", b * h * w, 4,
+                           clip_pos.device)
+        out = torch.empty((b, h, w), dtype=torch.float32, device=clip_pos.device)
+    else:
+        check_tensor("out", out, (b, h, w))
+        if out.dtype != torch.float32 or out.device != clip_pos.device:
+            raise TypeError(f"out: expected a float32 tensor on {clip_pos.device}, got "
+                            f"{out.dtype} on {out.device}")
+    band = max(int(tile), DEPTH_BAND_PIXELS // max(1, b * w) // int(tile) * int(tile))
+    for y0 in range(0, h, band):
+        y1 = min(h, y0 + band)
+        rows = None if (y0, y1) == (0, h) else (y0, y1)
+        keys = resolve_keys(clip_pos, faces, (h, w), cull_backfaces, face_ranges, int(tile),
+                            memory_budget, _DEPTH_BYTES_PER_PIXEL, rows=rows)
+        out[:, y0:y1] = key_depth(keys[0]).view(b, y1 - y0, w)
+    return out
 
 
 def rasterize_coverage(
@@ -409,6 +434,9 @@ def _nearest_keys(clip_pos, faces, resolution, cull_backfaces, face_ranges, tile
 #: Peak bytes per pixel of rasterize_depth beyond the chunk budget: the int64 key and the
 #: float32 result.
 _DEPTH_BYTES_PER_PIXEL = 16
+#: rasterize_depth resolves frames of more pixels than this (batch included) in bands of
+#: whole tile rows, each with its own int64 keys (2**21 keys: 16 MB).
+DEPTH_BAND_PIXELS = 2**21
 
 
 #: Most depth layers of one rasterize call (each layer is one more pass over the candidates
@@ -463,24 +491,33 @@ class Coverage:
 
 def resolve_keys(clip_pos, faces, resolution, cull_backfaces, face_ranges, tile,
                  memory_budget, bytes_per_pixel, *, layers: int = 1,
-                 coverage: Coverage | None = None, observe=None) -> torch.Tensor:
+                 coverage: Coverage | None = None, observe=None,
+                 rows: tuple[int, int] | None = None) -> torch.Tensor:
     """The no-grad visibility pass: ``(K, B*H*W)`` int64 keys (depth bits << 32 | face),
     the K smallest distinct ones per pixel in increasing order, ``EMPTY_KEY`` where there
     are fewer. Arguments as in :func:`rasterize` (checked); ``bytes_per_pixel`` is the
     frame memory the caller will need per pixel (checked up front); ``observe(pixel, key)``,
-    if given, sees every covered candidate (occlusion culling is then off)."""
+    if given, sees every covered candidate (occlusion culling is then off).
+
+    ``rows=(y0, y1)``: only the band of image rows ``y0 <= i < y1`` (keys ``(K, B*(y1-y0)*W)``,
+    the same values as those rows of the whole frame): triangle boxes are clipped to the
+    band before binning, so the frame's work is split, not repeated, across bands."""
     coverage = coverage or Coverage()
     h, w = resolution
     b = clip_pos.shape[0]
-    check_frame_memory(f"resolution ({h}, {w}) at batch {b}", b * h * w, bytes_per_pixel,
+    y0, y1 = (0, h) if rows is None else rows
+    check_frame_memory(f"resolution ({h}, {w}) at batch {b}",
+                       b * (h if rows is None else y1 - y0 + 2 * tile) * w, bytes_per_pixel,
                        clip_pos.device)
     max_candidates = max(1024, int(memory_budget) // coverage.bytes_per_candidate)
-    keys = frame_pool.empty((layers, b * h * w), torch.int64, clip_pos.device).fill_(EMPTY_KEY)
+    band = None if rows is None else _Band(y0, y1, h, w, b, tile)
+    keys = frame_pool.empty((layers, b * (h if band is None else band.rows) * w), torch.int64,
+                            clip_pos.device).fill_(EMPTY_KEY)
     # Occlusion culling: front faces first, then back faces that a conservative depth
     # test against the tiles resolved so far cannot prove hidden. Exact: a skipped
     # triangle's keys are all larger than the keys already in its pixels.
     cull_hidden = (layers == 1 and type(coverage) is Coverage and OCCLUSION_CULLING
-                   and observe is None)
+                   and observe is None and band is None)
     with torch.no_grad():
         # Visibility runs in float32 (float64 for float64 input), whatever the input dtype.
         pos = clip_pos.detach()
@@ -491,18 +528,20 @@ def resolve_keys(clip_pos, faces, resolution, cull_backfaces, face_ranges, tile,
                                                     max_candidates // 8):
             screen = clip_and_project(pos, screen_pos, codes, faces, face_ids, batch_ids,
                                       (h, w), cull_backfaces, margin=coverage.margin)
+            if band is not None:
+                band.clip_boxes(screen)
             front = screen.area < 0
             if not (cull_hidden and screen.valid is not None
                     and _back_candidates(screen, front) >= OCCLUSION_MIN_WORK):
                 _rasterize_group(screen, None, coverage, keys, (h, w), tile, max_candidates,
-                                 observe)
+                                 observe, band)
                 continue
             _rasterize_group(screen, (screen.valid & front).nonzero().squeeze(1), coverage,
                              keys, (h, w), tile, max_candidates)
             back = _visible_subset(screen, (screen.valid & ~front).nonzero().squeeze(1),
                                    keys[0], (b, h, w), tile)
             _rasterize_group(screen, back, coverage, keys, (h, w), tile, max_candidates)
-    return keys
+    return keys if band is None else band.inner(keys)
 
 
 #: Skip back-facing triangles that a conservative hierarchical depth test proves hidden
@@ -531,10 +570,50 @@ def _back_candidates(screen: ScreenTriangles, front: torch.Tensor) -> int:
     return int(size.masked_fill_(front | ~screen.valid, 0).sum())
 
 
+class _Band:
+    """A band of image rows ``y0 <= i < y1`` of a ``(B, H, W)`` frame (:func:`resolve_keys`).
+
+    Triangle boxes are clipped to the band; their blocks (at most ``tile`` rows, aligned
+    to the tile grid or to the clipped box) can still reach up to ``tile`` rows past it, so
+    the band's keys have ``tile`` spare rows above and below that take those candidates
+    (one subtraction a chunk instead of a compaction) and are dropped at the end.
+    """
+
+    def __init__(self, y0: int, y1: int, h: int, w: int, b: int, tile: int) -> None:
+        if not 0 <= y0 < y1 <= h:
+            raise ValueError(f"rows: expected 0 <= y0 < y1 <= H={h}, got ({y0}, {y1})")
+        self.y0, self.y1, self.h, self.w, self.b, self.margin = y0, y1, h, w, b, tile
+        self.rows = y1 - y0 + 2 * tile  # rows of the keys buffer (spare rows included)
+
+    def clip_boxes(self, screen: ScreenTriangles) -> None:
+        """Clip the pixel boxes to the band; triangles outside it become invalid."""
+        box = screen.box
+        box[BOX_YMIN].clamp_(min=self.y0)
+        box[BOX_YMAX].clamp_(max=self.y1 - 1)
+        inside = box[BOX_YMIN] <= box[BOX_YMAX]
+        screen.valid = inside if screen.valid is None else screen.valid & inside
+
+    def take(self, pixel: torch.Tensor, key: torch.Tensor
+             ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Frame pixel indices ``b*H*W + i*W + j`` -> the keys buffer's."""
+        first = (self.y0 - self.margin) * self.w  # the buffer's row 0 in the frame
+        local = pixel - first
+        if self.b > 1:
+            item = torch.div(pixel, self.h * self.w, rounding_mode="floor")
+            local.add_(item.mul_(self.rows * self.w - self.h * self.w))
+        return local, key
+
+    def inner(self, keys: torch.Tensor) -> torch.Tensor:
+        """``(K, B*rows*W)`` buffer keys -> ``(K, B*(y1-y0)*W)`` keys of the band."""
+        k, m = keys.shape[0], self.margin
+        return keys.view(k, self.b, self.rows, self.w)[:, :, m:self.rows - m].reshape(k, -1)
+
+
 def _rasterize_group(screen, select, coverage, keys, resolution, tile, max_candidates,
-                     observe=None):
+                     observe=None, band: _Band | None = None):
     """Bin, test and resolve the screen triangles ``select`` (None: the valid ones) into
-    ``keys`` (in place), showing every candidate to ``observe(pixel, key)`` if given."""
+    ``keys`` (in place), showing every candidate to ``observe(pixel, key)`` if given; with
+    ``band``, only its rows (``keys`` holds the band)."""
     screen, runs, n_small = sort_by_block(screen, resolution, tile, select)
     if len(screen) == 0:
         return
@@ -547,14 +626,14 @@ def _rasterize_group(screen, select, coverage, keys, resolution, tile, max_candi
             for found in ragged_keys(setup, few, resolution, max_candidates):
                 if observe is not None:
                     observe(*found)
-                insert_layers(keys, *found)
+                insert_layers(keys, *(found if band is None else band.take(*found)))
     for records in bin_triangles(setup, runs, n_small, resolution, tile, max_candidates,
                                  margin=coverage.margin):
         found = coverage.cover(setup, records, resolution)
         if found is not None:
             if observe is not None:
                 observe(*found)
-            insert_layers(keys, *found)
+            insert_layers(keys, *(found if band is None else band.take(*found)))
 
 
 #: Runs of small triangles (one block shape) with fewer candidates than this are tested

@@ -94,6 +94,9 @@ PATTERNS = ("poisson", "grid")
 MAX_SPOT_FOV_DEG: float = 120.0
 #: Bytes of shadow-map memory rendered per rasterize call (views are chunked to fit).
 SHADOW_MEMORY_BUDGET: int = 256 * 2**20
+#: Bytes of candidate temporaries per chunk of a shadow map's depth resolve
+#: (``rasterize_depth(memory_budget=...)``; the main pass uses 96 MB).
+SHADOW_RASTER_BUDGET: int = 32 * 2**20
 #: Pixel-taps evaluated at once by the filters (bounds the temporaries of one chunk).
 TAP_CHUNK_ELEMENTS: int = 2**22
 #: Largest tan(angle) between normal and light used by the slope-scaled bias (~84 deg).
@@ -303,6 +306,13 @@ def _linear_depth_inplace(ndc: torch.Tensor, near: torch.Tensor, far: torch.Tens
     """:func:`_linear_depth` overwriting ``ndc`` (no full-size temporaries: the maps of
     a 4096² cube are 6 x 64 MB), ``+inf`` where ``ndc`` is not finite; the same operations
     in the same order, so bit-identical to it where ``ndc`` is finite."""
+    if ndc.dim() == 3 and ndc[0].numel() > 2**20:  # large maps: 2**20 texels at a time
+        step = max(1, 2**20 // ndc.shape[-1])
+        for i in range(ndc.shape[0]):
+            for r in range(0, ndc.shape[1], step):
+                _linear_depth_inplace(ndc[i:i + 1, r:r + step], near[i:i + 1], far[i:i + 1],
+                                      perspective)
+        return ndc
     empty = ~torch.isfinite(ndc)
     ndc.mul_(far - near)
     if perspective:  # 2 f n / ((f + n) - z (f - n))
@@ -1014,6 +1024,7 @@ def render_shadow_maps(groups: Sequence[ShadowMaps], positions: torch.Tensor,
         per_view = size * size * (16 if not grad else 400)
         per_call = max(1, memory_budget // per_view)
         cached = (cache is not None and not grad and size * size * 4 <= cache.max_bytes
+                  and size * size <= DIRECT_MAP_TEXELS  # larger: straight into the maps
                   and all(g.face_id is None for g in members))  # the cache keeps no face ids
         for k in range(0, all_m.shape[0], per_call):
             sl = slice(k, k + per_call)
@@ -1030,8 +1041,10 @@ def render_shadow_maps(groups: Sequence[ShadowMaps], positions: torch.Tensor,
                 if grad:
                     ndc = _vsm_render(clip, faces, size, ranges, near_rows[sl], far_rows[sl],
                                       persp_rows[sl])
-                else:
-                    ndc = rasterize_depth(clip, faces, (size, size), face_ranges=ranges)
+                else:  # large maps: rendered straight into the group's maps
+                    into = _map_rows(members, spans, slots, k, clip.shape[0])
+                    ndc = rasterize_depth(clip, faces, (size, size), face_ranges=ranges,
+                                          out=into, memory_budget=SHADOW_RASTER_BUDGET)
                     if any(g.face_id is not None for g in members):
                         with torch.no_grad():  # the same winners as rasterize_depth
                             fid = rasterize(clip.detach(), faces, (size, size),
@@ -1109,10 +1122,34 @@ def _empty_maps(g: ShadowMaps, size: int, dtype: torch.dtype) -> torch.Tensor:
         b, n_lights, nv, 2, size, size).contiguous()
 
 
+def _map_rows(members: list[ShadowMaps], spans: list[tuple[int, int]],
+              slots: list[torch.Tensor], k: int, n: int) -> torch.Tensor | None:
+    """The maps that views ``k .. k + n`` of a render chunk go to, as one ``(n, S, S)``
+    float32 view of a group's maps when they are consecutive maps of a group without
+    moments and larger than :data:`DIRECT_MAP_TEXELS` (rendered in place: no frame-sized
+    temporary), else None."""
+    for g, (lo, hi), slot in zip(members, spans, slots, strict=True):
+        if lo <= k and k + n <= hi and g.settings.filter != "vsm" \
+                and g.depth.dtype == torch.float32 and g.face_id is None \
+                and g.settings.map_size ** 2 > DIRECT_MAP_TEXELS:
+            part = slot[k - lo:k - lo + n]
+            first = int(part[0])
+            if torch.equal(part, torch.arange(first, first + n, device=part.device)):
+                size = g.settings.map_size
+                return g.depth.view(-1, size, size)[first:first + n]
+    return None
+
+
+#: Maps of more texels than this are rendered straight into the group's maps (their
+#: NDC depth converted in place there) instead of through a chunk-sized buffer.
+DIRECT_MAP_TEXELS = 2048**2
+
+
 def _store_maps(g: ShadowMaps, ndc: torch.Tensor, slot: torch.Tensor) -> None:
     """Write rendered NDC depth ``(N, S, S)`` of views ``slot`` ``(N,)`` (flat indices
     into ``(B * Ls * NV)``) into ``g.depth`` as linear depth, or VSM moments; ``ndc`` may
-    also be the unblurred moments ``(N, 2, S, S)`` of :func:`_vsm_render`."""
+    also be the unblurred moments ``(N, 2, S, S)`` of :func:`_vsm_render`, or already be
+    those maps (:func:`_map_rows`: converted in place)."""
     if ndc.dim() == 4:  # VSM moments with autograd: blurred, out of place
         val = _vsm_blur(ndc, g.settings)
         shape = g.depth.shape
@@ -1122,8 +1159,9 @@ def _store_maps(g: ShadowMaps, ndc: torch.Tensor, slot: torch.Tensor) -> None:
     far = g.far.reshape(-1).index_select(0, slot)[:, None, None]
     if g.settings.filter != "vsm" and not (ndc.requires_grad or near.requires_grad
                                            or far.requires_grad):
-        g.depth.view(-1, *ndc.shape[1:]).index_copy_(
-            0, slot, _linear_depth_inplace(ndc, near, far, g.perspective))
+        lin = _linear_depth_inplace(ndc, near, far, g.perspective)
+        if lin.data_ptr() != g.depth.view(-1, *ndc.shape[1:])[int(slot[0])].data_ptr():
+            g.depth.view(-1, *ndc.shape[1:]).index_copy_(0, slot, lin)
         return
     lin = _linear_depth(ndc, near, far, g.perspective)
     if g.settings.filter == "vsm":
