@@ -158,3 +158,23 @@ def test_maps_rendered_in_place_and_in_bands_are_the_same(monkeypatch, budget):
     for a, g in zip(want, groups, strict=True):
         assert torch.equal(a, g.depth)
     assert sum(int(torch.isfinite(a).sum()) for a in want) > 1000
+
+
+@pytest.mark.parametrize("perspective", [True, False])
+def test_linear_depth_in_place_is_the_formula_bit_for_bit(perspective):
+    """``_linear_depth_inplace`` (masks, large maps in 2**20-texel pieces) against the
+    out-of-place ``_linear_depth`` on rasterize_depth-like input: [-1, 1] and +inf."""
+    from torchraster.shading.shadows import _linear_depth, _linear_depth_inplace
+
+    g = torch.Generator().manual_seed(3)
+    for shape in ((3, 17, 23), (2, 1100, 1000)):  # the second is chunked
+        ndc = torch.rand(shape, generator=g) * 2 - 1
+        ndc[torch.rand(shape, generator=g) < 0.3] = float("inf")
+        ndc[0, 0, :3] = torch.tensor([-1.0, 1.0, 0.0])
+        near = torch.rand(shape[0], 1, 1, generator=g) + 0.1
+        far = near + torch.rand(shape[0], 1, 1, generator=g) * 100
+        want = _linear_depth(ndc, near, far, perspective)
+        want = torch.where(torch.isfinite(ndc), want, torch.full_like(want, float("inf")))
+        got = _linear_depth_inplace(ndc.clone(), near, far, perspective)
+        assert torch.equal(got, want)
+        assert torch.isposinf(got).sum() == torch.isposinf(ndc).sum()

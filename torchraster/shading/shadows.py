@@ -304,8 +304,11 @@ def _linear_depth(ndc: torch.Tensor, near: torch.Tensor, far: torch.Tensor,
 def _linear_depth_inplace(ndc: torch.Tensor, near: torch.Tensor, far: torch.Tensor,
                           perspective: bool) -> torch.Tensor:
     """:func:`_linear_depth` overwriting ``ndc`` (no full-size temporaries: the maps of
-    a 4096² cube are 6 x 64 MB), ``+inf`` where ``ndc`` is not finite; the same operations
-    in the same order, so bit-identical to it where ``ndc`` is finite."""
+    a 4096² cube are 6 x 64 MB), ``+inf`` where ``ndc`` is ``+inf`` (``ndc`` from
+    :func:`rasterize_depth`: in [-1, 1] or ``+inf`` where empty); the same operations in the
+    same order, so bit-identical to it elsewhere. Orthographic maps need no mask (``+inf``
+    stays ``+inf`` through ``(z (f - n) + f + n) / 2``); perspective ones find it with
+    ``isposinf`` (~6x cheaper than ``~isfinite`` on the CPU)."""
     if ndc.dim() == 3 and ndc[0].numel() > 2**20:  # large maps: 2**20 texels at a time
         step = max(1, 2**20 // ndc.shape[-1])
         for i in range(ndc.shape[0]):
@@ -313,13 +316,12 @@ def _linear_depth_inplace(ndc: torch.Tensor, near: torch.Tensor, far: torch.Tens
                 _linear_depth_inplace(ndc[i:i + 1, r:r + step], near[i:i + 1], far[i:i + 1],
                                       perspective)
         return ndc
-    empty = ~torch.isfinite(ndc)
-    ndc.mul_(far - near)
-    if perspective:  # 2 f n / ((f + n) - z (f - n))
-        ndc.neg_().add_(far + near)
-        torch.div(2 * far * near, ndc, out=ndc)
-    else:  # (z (f - n) + f + n) / 2
-        ndc.add_(far).add_(near).div_(2)
+    if not perspective:  # (z (f - n) + f + n) / 2
+        return ndc.mul_(far - near).add_(far).add_(near).div_(2)
+    empty = torch.isposinf(ndc)
+    ndc.mul_(far - near)  # 2 f n / ((f + n) - z (f - n))
+    ndc.neg_().add_(far + near)
+    torch.div(2 * far * near, ndc, out=ndc)
     return ndc.masked_fill_(empty, float("inf"))
 
 
