@@ -481,3 +481,34 @@ def test_kept_raster_only_for_the_same_inputs():
     faces[:, [1, 2]] = faces[:, [2, 1]].clone()  # changed in place: not the kept raster
     assert memo.rasterize(clip, faces, plan, True, None) is not kept
     assert memo.rasterize(clip, faces, plan, False, None) is not kept
+
+
+def test_linear_depth_unprojects_every_pixel_centre():
+    """``linear_depth`` against a per-pixel solve of ``proj @ (x, y, z, 1) ~ (ndc, 1)`` for
+    perspective, reverse-Z and orthographic projections, one per batch item or shared."""
+    from torchraster.motion import linear_depth
+
+    h, w = 5, 7
+    g = torch.Generator().manual_seed(1)
+    projs = [tr.camera.perspective(50.0, 1.3, 0.1, 40.0),
+             tr.camera.perspective(70.0, 0.8, 0.05, reverse_z=True),
+             tr.camera.orthographic(-2.0, 1.5, -1.0, 1.2, 0.1, 9.0)]
+    for shared in (True, False):
+        proj = torch.cat([p.reshape(-1, 4, 4) for p in (projs[:1] if shared else projs)]
+                         ).to(torch.float64)
+        b = 3
+        ndc = torch.rand(b, h, w, generator=g, dtype=torch.float64) * 1.8 - 0.9
+        ndc[:, 0, :2] = float("inf")
+        got = linear_depth(ndc, proj)
+        for i in range(b):
+            p = proj[0 if shared else i]
+            for r in range(h):
+                for c in range(w):
+                    if not torch.isfinite(ndc[i, r, c]):
+                        assert got[i, r, c] == float("inf")
+                        continue
+                    q = torch.linalg.solve(p, torch.tensor(
+                        [(2 * c + 1) / w - 1, 1 - (2 * r + 1) / h, float(ndc[i, r, c]), 1.0],
+                        dtype=torch.float64))
+                    assert abs(float(got[i, r, c]) + float(q[2] / q[3])) < 1e-9 * (
+                        1 + abs(float(q[2] / q[3])))

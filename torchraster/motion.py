@@ -391,15 +391,16 @@ def linear_depth(ndc_depth: torch.Tensor, proj: torch.Tensor) -> torch.Tensor:
     b, h, w = ndc_depth.shape
     f64 = torch.float64
     inv = torch.linalg.inv(proj.detach().to(f64))  # (B', 4, 4)
-    xs = (2 * torch.arange(w, dtype=f64, device=ndc_depth.device) + 1) / w - 1
-    ys = 1 - (2 * torch.arange(h, dtype=f64, device=ndc_depth.device) + 1) / h
+    xs = ((2 * torch.arange(w, dtype=f64, device=ndc_depth.device) + 1) / w - 1).view(1, 1, w)
+    ys = (1 - (2 * torch.arange(h, dtype=f64, device=ndc_depth.device) + 1) / h).view(1, h, 1)
     z = ndc_depth.to(f64)
     finite = torch.isfinite(z)
     zs = torch.where(finite, z, torch.zeros_like(z))
-    p = torch.stack([xs.view(1, 1, w).expand(b, h, w), ys.view(1, h, 1).expand(b, h, w), zs,
-                     torch.ones_like(zs)], -1)  # (B, H, W, 4)
-    q = torch.einsum("bij,bhwj->bhwi", inv.expand(b, 4, 4), p)
-    depth = -q[..., 2] / q[..., 3]
+    # rows 2 and 3 of inv @ (x, y, z, 1): view z and w, broadcast over the pixel grid
+    r2, r3 = (inv[:, i].reshape(-1, 4, 1, 1) for i in (2, 3))
+    num = (r2[:, 0] * xs + r2[:, 1] * ys + r2[:, 3]) + r2[:, 2] * zs
+    den = (r3[:, 0] * xs + r3[:, 1] * ys + r3[:, 3]) + r3[:, 2] * zs
+    depth = -num / den
     return torch.where(finite, depth, torch.full_like(depth, float("inf")))
 
 

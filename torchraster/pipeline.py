@@ -345,7 +345,7 @@ def view_renderer(cfg: RenderFile, device: str | torch.device = "cpu"
         with torch.no_grad():
             out = renderer(scene, view.to(device), proj.to(device), lights, env, channels,
                            **motion)
-            depth = out.gbuffer.get("depth")
+            depth = out.gbuffer.get("depth") if post.dof.enabled else None
             if depth is not None:  # the background is far away for depth of field
                 far = depth.amax().clamp(min=1.0) * 100
                 depth = torch.where(out.alpha > 0, depth, far)
