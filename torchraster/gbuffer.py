@@ -339,11 +339,14 @@ def geometry_pass(
             0, frags.items)  # (N, 4) third row of each pixel's view matrix
         z_view = (rows[:, :3] * pos.T).sum(-1) + rows[:, 3]
         out["depth"] = to_image(-z_view[None], frags)
+        del rows, z_view
     if "distance" in channels:  # |view-space point|: the ray length from the eye
         rows = view.to(dtype).expand(frags.face_id.shape[0], 4, 4)[:, :3].index_select(
             0, frags.items)  # (N, 3, 4)
         p_view = (rows[:, :, :3] * pos.T[:, None]).sum(-1) + rows[:, :, 3]  # (N, 3)
         out["distance"] = to_image(_norm_rows(p_view)[None], frags)
+        del rows, p_view
+    del pos  # memory: packed copies of channels never coexist with all their images
 
     uv = duv_dx = duv_dy = None
     if "uv" in need:
@@ -354,12 +357,12 @@ def geometry_pass(
         if "uv" in channels:
             out["uv"] = to_image(uv, frags)
 
-    # Per-pixel material index (N,)
+    # Per-pixel material index (N,); None: every pixel has material 0
+    mat_index = None
     if face_material is not None and len(materials) > 1:
         face = frags.face_id.view(-1).index_select(0, frags.pixels)
         mat_index = face_material.to(frags.pixels.device).index_select(0, face)
-    else:
-        mat_index = torch.zeros(n, dtype=torch.long, device=frags.pixels.device)
+        del face
     mats = list(materials) or [None]
 
     trilinear = duv_dx is not None and texture_filter == "trilinear"
@@ -368,16 +371,19 @@ def geometry_pass(
         slots = [s for s in slots if s != "normal"]  # no normal mapping without tangents
     memo: dict[int, dict[str, torch.Tensor]] = {}
 
-    def sample(slot: str, m: int, sel: torch.Tensor) -> torch.Tensor | None:
-        """Sample material m's texture ``slot`` at the packed pixels ``sel`` -> (C, n_sel)."""
+    def pick(t: torch.Tensor, sel: torch.Tensor | None) -> torch.Tensor:
+        return t if sel is None else t.index_select(1, sel)  # None: all pixels, no copy
+
+    def sample(slot: str, m: int, sel: torch.Tensor | None) -> torch.Tensor | None:
+        """Sample material m's texture ``slot`` at the packed pixels ``sel`` (None: all)
+        -> (C, n_sel)."""
         mat = mats[m]
         if mat is None or getattr(mat, slot + "_texture") is None:
             return None
         if trilinear:  # all of the material's textures at once (one mip atlas per size)
             if m not in memo:
-                memo[m] = _sample_atlases(mat, slots, uv.index_select(1, sel),
-                                          duv_dx.index_select(1, sel),
-                                          duv_dy.index_select(1, sel), mip_cache)
+                memo[m] = _sample_atlases(mat, slots, pick(uv, sel), pick(duv_dx, sel),
+                                          pick(duv_dy, sel), mip_cache)
             return memo[m][slot]
         raw = getattr(mat, slot + "_texture")
 
@@ -388,10 +394,10 @@ def geometry_pass(
             return MipTexture(tex[None], address="wrap")
 
         mip = mip_cache.get(raw, build, dtype, device) if mip_cache is not None else build()
-        grid = uv.index_select(1, sel)[None, :, None, :]  # (1, 2, 1, n_sel)
+        grid = pick(uv, sel)[None, :, None, :]  # (1, 2, 1, n_sel)
         if duv_dx is not None and texture_filter in ("trilinear", "anisotropic"):
-            ddx = duv_dx.index_select(1, sel)[None, :, None, :]
-            ddy = duv_dy.index_select(1, sel)[None, :, None, :]
+            ddx = pick(duv_dx, sel)[None, :, None, :]
+            ddy = pick(duv_dy, sel)[None, :, None, :]
             val = mip.sample(grid, ddx, ddy, filter=texture_filter, max_anisotropy=max_anisotropy)
         else:
             val = mip.sample(grid, filter="bilinear" if texture_filter != "nearest"
@@ -399,34 +405,42 @@ def geometry_pass(
         return val[0, :, 0]
 
     need_material = channels & {"albedo", "alpha", "metallic", "roughness", "ao", "emissive"}
-    packed: dict[str, torch.Tensor] = {}
-    if need_material:
+    if need_material and mat_index is None:  # one material: its values straight to images
+        values = _material_values(mats[0], need_material, lambda s: sample(s, 0, None), n,
+                                  positions)
+        for ch in list(values):  # a constant (C, 1) is scattered as an expanded view
+            out[ch] = to_image(values.pop(ch).expand(-1, n), frags, fill=0.0)
+    elif need_material:
         sizes = {"albedo": 3, "alpha": 1, "metallic": 1, "roughness": 1, "ao": 1, "emissive": 3}
-        for ch in need_material:
-            packed[ch] = positions.new_zeros(sizes[ch], n)
+        packed = {ch: positions.new_zeros(sizes[ch], n) for ch in need_material}
         for m in range(len(mats)):
-            sel = (mat_index == m).nonzero().squeeze(1) if len(mats) > 1 else None
-            if sel is not None and sel.numel() == 0:
+            sel = (mat_index == m).nonzero().squeeze(1)
+            if sel.numel() == 0:
                 continue
-            if sel is None:
-                sel = torch.arange(n, device=mat_index.device)
             values = _material_values(mats[m], need_material, lambda s, m=m, sel=sel: sample(
                 s, m, sel), sel.numel(), positions)
-            for ch, v in values.items():
-                if len(mats) == 1:  # every pixel: no scatter
-                    packed[ch] = v.expand(-1, n).contiguous()
-                else:
-                    packed[ch] = packed[ch].index_copy(1, sel, v.expand(-1, sel.numel()))
+            for ch, v in values.items():  # in place: one packed copy per channel
+                packed[ch].index_copy_(1, sel, v.expand(-1, sel.numel()))
+            del values
         for ch in need_material:
-            out[ch] = to_image(packed[ch], frags, fill=0.0)
+            out[ch] = to_image(packed.pop(ch), frags, fill=0.0)
+    for values in memo.values():  # only a normal map is sampled later
+        for slot in [s for s in values if s != "normal"]:
+            del values[slot]
+    normal_mapped = "normal" in channels and "tangent" in need and tangents is not None
+    if not normal_mapped:
+        uv = duv_dx = duv_dy = None
 
     if "normal" in channels:
         if normals is None:
             raise ValueError("normals: vertex normals are required for the 'normal' channel")
         nrm = interpolate_packed(normals.to(dtype), frags)[0]  # (3, N)
-        if "tangent" in need and tangents is not None:
+        if normal_mapped:
             tan = interpolate_packed(tangents.to(dtype), frags)[0]  # (4, N)
+            if mat_index is None:
+                mat_index = torch.zeros(n, dtype=torch.long, device=device)
             nrm = _apply_normal_maps(nrm, tan, mats, mat_index, sample)
+            del tan
         nrm = safe_normalize(nrm, dim=0)
         if frags.front_facing is not None:  # back faces are seen from behind: flip
             nrm = torch.where(frags.front_facing[None], nrm, -nrm)

@@ -17,10 +17,34 @@ from ..numerics import take_columns
 from .rasterize import PIXEL_CHUNK, Fragments, pixel_slices
 
 
+class _Scatter(torch.autograd.Function):
+    """``frame[:, pixels] = packed`` into a new (C, P) frame of ``fill``, in place (one frame,
+    not a filled frame and its scattered copy). Backward: d packed = grad at ``pixels``; only
+    the indices are saved (autograd's ``index_copy`` also keeps ``packed`` alive)."""
+
+    @staticmethod
+    def forward(ctx, packed, pixels, frame, fill):
+        flat = packed.new_full((packed.shape[0], frame), fill)
+        flat.index_copy_(1, pixels, packed)
+        ctx.save_for_backward(pixels)
+        ctx.set_materialize_grads(False)
+        return flat
+
+    @staticmethod
+    def backward(ctx, grad):
+        if grad is None or not ctx.needs_input_grad[0]:
+            return None, None, None, None
+        (pixels,) = ctx.saved_tensors
+        return grad.index_select(1, pixels), None, None, None
+
+
 def to_image(packed: torch.Tensor, frags: Fragments, fill: float = 0.0) -> torch.Tensor:
-    """Scatter (C, N) per-covered-pixel values into a (B, C, H, W) image, ``fill`` elsewhere."""
+    """Scatter (C, N) per-covered-pixel values into a (B, C, H, W) image, ``fill`` elsewhere.
+
+    ``packed`` may be an expanded (C, 1) -> (C, N) view (a constant per channel).
+    Differentiable with respect to ``packed``, which it does not keep alive for backward."""
     b, h, w = frags.face_id.shape
-    flat = packed.new_full((packed.shape[0], b * h * w), fill).index_copy(1, frags.pixels, packed)
+    flat = _Scatter.apply(packed, frags.pixels, b * h * w, fill)
     return flat.view(-1, b, h, w).transpose(0, 1)
 
 

@@ -273,81 +273,106 @@ def _ct_lobe(n_l, v_l, w, n_v, nv, a, a2, lam_v):
     return s1, s1 * schlick_weight(v_h)
 
 
+def _pack_item(item, covered, dt, position, normal, albedo, metallic, roughness,
+               camera_position):
+    """Batch item ``item``: (covered pixel indices (M,) or None for all, then packed
+    position, unit normal, unit view direction, albedo ``(3, M)``, metallic, roughness
+    ``(1, M)`` in ``dt``). Only covered pixels are read, so garbage in empty G-buffer pixels
+    cannot reach values or gradients."""
+    _, _, h, w = position.shape
+    flat = [t[item].reshape(t.shape[1], h * w)
+            for t in (position, normal, albedo, metallic, roughness)]
+    sel = None
+    if covered is not None:
+        sel = covered[item].reshape(-1).nonzero().squeeze(1)
+        flat = [t.index_select(1, sel) for t in flat]
+    pos, nrm, base, metal, rough = (t.to(dt) for t in flat)
+    del flat
+    n = safe_normalize(nrm, dim=0)
+    del nrm
+    v = safe_normalize(camera_position[item].to(dt)[:, None] - pos, dim=0)
+    return sel, pos, n, v, base, metal, rough
+
+
 def _pack_items(covered, dt, position, normal, albedo, metallic, roughness, camera_position):
-    """Per batch item: (covered pixel indices (M,) or None for all, then packed position,
-    unit normal, unit view direction, albedo ``(3, M)``, metallic, roughness ``(1, M)`` in
-    ``dt``). Only covered pixels are read, so garbage in empty G-buffer pixels cannot reach
-    values or gradients."""
-    b, _, h, w = position.shape
-    items = []
-    for item in range(b):
-        flat = [t[item].reshape(t.shape[1], h * w)
-                for t in (position, normal, albedo, metallic, roughness)]
-        sel = None
-        if covered is not None:
-            sel = covered[item].reshape(-1).nonzero().squeeze(1)
-            flat = [t.index_select(1, sel) for t in flat]
-        pos, nrm, base, metal, rough = (t.to(dt) for t in flat)
-        n = safe_normalize(nrm, dim=0)
-        v = safe_normalize(camera_position[item].to(dt)[:, None] - pos, dim=0)
-        items.append((sel, pos, n, v, base, metal, rough))
-    return items
+    """:func:`_pack_item` of every batch item, a list."""
+    return [_pack_item(item, covered, dt, position, normal, albedo, metallic, roughness,
+                       camera_position) for item in range(position.shape[0])]
 
 
-def _fused_direct(kind, lights, packed, vis, use_ckpt, acc, multiscatter=True):
+def _fused_direct(kind, lights, packed, vis, use_ckpt, acc, multiscatter=True, done=None):
     """Add one chunk of lights of ``kind`` to the packed radiance ``acc`` (a list of
     ``(3, M)`` per batch item, None until lit) through :func:`cook_torrance_lights`, in
     chunks of about :data:`PIXEL_LIGHT_CHUNK` pixel-lights, each recomputed in backward
-    when ``use_ckpt``. ``vis``: ``(B, L, 1, H, W)`` visibility or None."""
+    when ``use_ckpt``. ``packed(item)``: the item's :func:`_pack_item` tuple; ``done(item)``
+    (or None) is called once the item is lit. ``vis``: ``(B, L, 1, H, W)`` visibility or
+    None."""
     per = PIXEL_LIGHT_CHUNK * (GRAD_CHUNK_FACTOR if torch.is_grad_enabled() else 1)
     per = max(1024, per // max(1, lights.count))
-    for item, (sel, *attrs) in enumerate(packed):
-        m = attrs[0].shape[1]
-        if m == 0:
-            continue
-        vis_i = None
-        if vis is not None:
-            vis_i = vis[item].reshape(vis.shape[1], -1)
-            vis_i = vis_i if sel is None else vis_i.index_select(1, sel)
-        inplace = not torch.is_grad_enabled()  # no graph: add each chunk in place
-        if inplace and acc[item] is None:
-            acc[item] = attrs[0].new_zeros(3, m)
-        parts = []
-        for s0 in range(0, m, per):
-            args = [t[:, s0:s0 + per] for t in attrs]
-            args.append(None if vis_i is None else vis_i[:, s0:s0 + per])
-            if use_ckpt:
-                rad = checkpoint(cook_torrance_lights, kind, lights, item, *args,
-                                 multiscatter=multiscatter, use_reentrant=False)
-            else:
-                rad = cook_torrance_lights(kind, lights, item, *args,
-                                           multiscatter=multiscatter)
-            if inplace:
-                acc[item][:, s0:s0 + per] += rad
-            else:
-                parts.append(rad)
-        if not inplace:
-            rad = torch.cat(parts, 1) if len(parts) > 1 else parts[0]
-            acc[item] = rad if acc[item] is None else acc[item] + rad
+    for item in range(len(acc)):
+        sel, *attrs = packed(item)
+        if attrs[0].shape[1] > 0:
+            vis_i = None
+            if vis is not None:
+                vis_i = vis[item].reshape(vis.shape[1], -1)
+                vis_i = vis_i if sel is None else vis_i.index_select(1, sel)
+            _fused_item(kind, lights, item, attrs, vis_i, per, use_ckpt, acc, multiscatter)
+        del sel, attrs
+        if done is not None:
+            done(item)
+
+
+def _fused_item(kind, lights, item, attrs, vis_i, per, use_ckpt, acc, multiscatter):
+    """:func:`_fused_direct` of one batch item: its packed ``attrs`` (position, n, v, albedo,
+    metallic, roughness), visibility ``(L, M)`` or None, pixel chunks of ``per``."""
+    m = attrs[0].shape[1]
+    inplace = not torch.is_grad_enabled()  # no graph: add each chunk in place
+    if inplace and acc[item] is None:
+        acc[item] = attrs[0].new_zeros(3, m)
+    parts = []
+    for s0 in range(0, m, per):
+        args = [t[:, s0:s0 + per] for t in attrs]
+        args.append(None if vis_i is None else vis_i[:, s0:s0 + per])
+        if use_ckpt:
+            rad = checkpoint(cook_torrance_lights, kind, lights, item, *args,
+                             multiscatter=multiscatter, use_reentrant=False)
+        else:
+            rad = cook_torrance_lights(kind, lights, item, *args, multiscatter=multiscatter)
+        if inplace:
+            acc[item][:, s0:s0 + per] += rad
+        else:
+            parts.append(rad)
+    if not inplace:
+        rad = torch.cat(parts, 1) if len(parts) > 1 else parts[0]
+        acc[item] = rad if acc[item] is None else acc[item] + rad
+
+
+def _scatter_item(frame, item, sel, rad):
+    """Write item ``item``'s packed radiance ``rad`` ``(3, M)`` (None: unlit) into ``frame``
+    ``(B, 3, H * W)`` at its pixels ``sel`` (None: all), in place (no autograd graph)."""
+    if rad is None:
+        return
+    if sel is None:
+        frame[item].copy_(rad)
+    else:
+        frame[item].index_copy_(1, sel, rad)
 
 
 def _unpack_items(acc, packed, shape, like):
-    """``(B, 3, H, W)`` image of packed per-item radiance (0 at uncovered pixels)."""
+    """``(B, 3, H, W)`` image of packed per-item radiance (0 at uncovered pixels), recorded
+    by autograd (without a graph, :func:`shade` scatters into one frame in place)."""
     b, _, h, w = shape
-    if not torch.is_grad_enabled():
-        out = like.new_zeros(b, 3, h * w)
-        for item, (rad, (sel, *_)) in enumerate(zip(acc, packed, strict=True)):
-            if rad is not None:
-                out[item] = rad if sel is None else out[item].index_copy_(1, sel, rad)
-        return out.view(b, 3, h, w)
     images = []
     for rad, (sel, *attrs) in zip(acc, packed, strict=True):
         if rad is None:  # unlit: 0, still connected to the inputs (zero gradients)
             images.append(like.new_zeros(3, h * w) + sum(t.sum() for t in attrs) * 0.0)
         elif sel is None:
             images.append(rad)
-        else:
-            images.append(rad.new_zeros(3, h * w).index_copy(1, sel, rad))
+        else:  # in place into a fresh frame; unlike index_copy_, indexed assignment does
+            # not keep ``rad`` for backward (memory)
+            image = rad.new_zeros(3, h * w)
+            image[:, sel] = rad
+            images.append(image)
     return torch.stack(images).view(b, 3, h, w)
 
 
@@ -467,17 +492,33 @@ def shade(
         surf = pixel_surface(safe_normalize(nrm),
                              safe_normalize(camera_position.to(dt)[:, :, None, None] - pos),
                              albedo=base, metallic=metal, roughness=rough)
-    radiance = torch.zeros(b, 3, h, w, device=dev, dtype=dt)
+    no_grad = not torch.is_grad_enabled()  # no graph: the frame is finished in place
 
     # Direct light: lights as a tensor dimension, in chunks.
-    packed = acc = None
-    if fused and kinds:
-        packed = _pack_items(covered, dt, position, normal, albedo, metallic, roughness,
-                             camera_position)
-        acc = [None] * b
     per_chunk = light_chunk or max(1, LIGHT_CHUNK_ELEMENTS // max(1, b * h * w))
     if fused and light_chunk is None and visibility is None:
         per_chunk = max(part.count for _, part in kinds) if kinds else 1  # memory: per pixel chunk
+    fused_direct = fused and bool(kinds)
+    # the fused pass writes its own frame; the others add to zeros
+    radiance = None if fused_direct else torch.zeros(b, 3, h, w, device=dev, dtype=dt)
+    items: dict[int, tuple] = {}  # batch item -> its _pack_item tuple, packed on first use
+    acc: list[torch.Tensor | None] = [None] * b
+    frame = torch.zeros(b, 3, h * w, device=dev, dtype=dt) if fused_direct and no_grad else None
+    # memory: with one pass over the lights and no graph, each item is packed, lit and
+    # written to the frame in turn (its packed copies are dropped before the next one)
+    one_pass = frame is not None and sum(len(_chunks(part.count, per_chunk))
+                                         for _, part in kinds) == 1
+
+    def packed(item: int) -> tuple:
+        if item not in items:
+            items[item] = _pack_item(item, covered, dt, position, normal, albedo, metallic,
+                                     roughness, camera_position)
+        return items[item]
+
+    def done(item: int) -> None:
+        _scatter_item(frame, item, items.pop(item)[0], acc[item])
+        acc[item] = None
+
     n_covered = b * h * w if covered is None else int(covered.sum())
     for kind, part in kinds:
         name = {DirectionalLights: "directional", PointLights: "point", SpotLights: "spot"}[kind]
@@ -499,7 +540,8 @@ def shade(
                              (b, chunk.count, 1, h, w), floating=True)
                 vis = vis.to(dt)
             if fused:
-                _fused_direct(kind, chunk, packed, vis, use_ckpt, acc, multiscatter)
+                _fused_direct(kind, chunk, packed, vis, use_ckpt, acc, multiscatter,
+                              done if one_pass else None)
                 continue
             surface = Surface(albedo=surf.albedo[:, None], metallic=surf.metallic[:, None],
                               roughness=surf.roughness[:, None])
@@ -509,8 +551,16 @@ def shade(
                 radiance = radiance + checkpoint(_direct, *args, use_reentrant=False)
             else:
                 radiance = radiance + _direct(*args)
-    if acc is not None:
-        radiance = _unpack_items(acc, packed, (b, 3, h, w), radiance)
+    if fused_direct:
+        if frame is not None:
+            for item in list(items):
+                done(item)
+            radiance = frame.view(b, 3, h, w)
+        else:
+            radiance = _unpack_items(acc, [packed(i) for i in range(b)], (b, 3, h, w),
+                                     position.new_zeros((), dtype=dt))
+        items.clear()  # memory: the packed copies are not needed past this point
+        acc.clear()
 
     # Ambient (SH) and image-based light, scaled by AO.
     indirect = None
@@ -533,10 +583,16 @@ def shade(
     if indirect is not None:
         if ao is not None:
             indirect = indirect * prep(ao)
-        radiance = radiance + indirect
+        radiance = radiance.add_(indirect) if no_grad else radiance + indirect
 
-    if emissive is not None:
+    # Without a graph, in place (no extra frames); uncovered pixels are zeroed below, so
+    # emissive is not masked first (the covered pixels get the same sums)
+    if emissive is not None and no_grad:
+        radiance.add_(emissive.to(dt))
+    elif emissive is not None:
         radiance = radiance + prep(emissive)
-    if covered is not None:
+    if covered is not None and no_grad:
+        radiance.masked_fill_(~covered, 0.0)
+    elif covered is not None:
         radiance = torch.where(covered, radiance, 0.0)
     return finish_low_precision(radiance, out_dtype)
