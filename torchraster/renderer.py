@@ -795,6 +795,8 @@ class Renderer(nn.Module):
             rad = self._shade(plan, gb, view, proj, eye, lights, environment, hook)
             if glow is not None:  # the dissolve's glowing band (0 where discarded)
                 rad = rad + glow.to(rad)
+            if not torch.is_grad_enabled():  # a fresh frame: masked in place (memory)
+                return rad.mul_(gb.mask)
             return rad * gb.mask
 
         visible = frags  # the face ids / depths antialiasing sees
@@ -851,7 +853,10 @@ class Renderer(nn.Module):
                                         plan.resolution, self.background_settings.fit, color)
         else:
             background = color.view(1, 3, 1, 1)
-        image = radiance + transmittance * background
+        if plan.alpha == "none" and not torch.is_grad_enabled():  # radiance is this call's
+            image = radiance.add_(transmittance * background)  # own frame: no third frame
+        else:
+            image = radiance + transmittance * background
         if plan.fog:
             image = self._apply_fog(plan, image, gb, view, proj, eye, lights, groups, scene,
                                     face_ranges, b, environment if plan.ibl else None)
