@@ -22,6 +22,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
+from torch.autograd.function import once_differentiable
 
 from .numerics import compute_dtype, finish_low_precision, grid_sample
 from .texture import (
@@ -99,6 +100,11 @@ class MipAtlas:
                lod_bias: float = 0.0) -> torch.Tensor:
         """Trilinear lookups at N points.
 
+        Differentiable with respect to ``uv``, ``duv_dx``, ``duv_dy`` (through the level
+        weights) and the textures (through :attr:`atlas`). Autograd keeps only the inputs:
+        the backward recomputes the taps (issue 23, memory), so double backward is not
+        supported.
+
         Args:
             uv: ``(2, N)`` texture coordinates (v up, as :mod:`torchraster.texture`).
             duv_dx, duv_dy: ``(2, N)`` their change per pixel step right / down.
@@ -111,29 +117,68 @@ class MipAtlas:
         c = self.atlas.shape[1]
         if n == 0:
             return uv.new_zeros(c, 0)
-        out_dtype = uv.dtype
-        dt = compute_dtype(uv, self.atlas)  # float32 for half-precision lookups
-        uv, duv_dx, duv_dy = uv.to(dt), duv_dx.to(dt), duv_dy.to(dt)
-        lod = compute_lod(duv_dx[None, :, None], duv_dy[None, :, None], self.size,
-                          lod_bias)[0, 0, 0]  # (N,)
-        top = self.num_levels - 1
-        lod = lod.clamp(0.0, float(top))
-        k0 = lod.detach().floor()
-        frac = lod - k0  # the hat weights of levels k0 and k0 + 1: 1 - frac and frac
-        k0 = k0.long()
-        k1 = (k0 + 1).clamp_max(top)
-        table = self._table.to(uv.dtype)
-        u = remap_address(uv[0], self.address[0])
-        v = 1.0 - remap_address(uv[1], self.address[1])
-        points = []
-        for k in (k0, k1):
-            oy, ox, h, w = table[k].unbind(1)
-            # texel centre coordinates in the padded level (+1: the pad), then the atlas
-            points.append(torch.stack((ox + u * w + 0.5, oy + v * h + 0.5), -1))
-        grid = torch.cat(points, 0)  # (2N, 2) atlas pixel coordinates
-        ha, wa = self.atlas.shape[-2:]
-        scale = grid.new_tensor([2.0 / (wa - 1), 2.0 / (ha - 1)])
-        grid = (grid * scale - 1.0)[None, None]  # (1, 1, 2N, 2), align_corners=True
-        s = grid_sample(self.atlas.to(dt), grid, mode="bilinear",
-                        padding_mode="border", align_corners=True)[0, :, 0]  # (C, 2N)
-        return finish_low_precision(torch.lerp(s[:, :n], s[:, n:], frac[None]), out_dtype)
+        return _TrilinearLookup.apply(self.atlas, uv, duv_dx, duv_dy, self._table, self.size,
+                                      self.address, float(lod_bias))
+
+
+def _lookup(atlas: torch.Tensor, uv: torch.Tensor, duv_dx: torch.Tensor, duv_dy: torch.Tensor,
+            table: torch.Tensor, size: tuple[int, int], address: tuple[str, str],
+            lod_bias: float) -> torch.Tensor:
+    """The trilinear lookup of :meth:`MipAtlas.sample` (``(C, N)``), in plain tensor ops:
+    run without autograd by the forward of :class:`_TrilinearLookup`, with it by the
+    backward."""
+    n = uv.shape[1]
+    out_dtype = uv.dtype
+    dt = compute_dtype(uv, atlas)  # float32 for half-precision lookups
+    uv, duv_dx, duv_dy = uv.to(dt), duv_dx.to(dt), duv_dy.to(dt)
+    lod = compute_lod(duv_dx[None, :, None], duv_dy[None, :, None], size,
+                      lod_bias)[0, 0, 0]  # (N,)
+    top = table.shape[0] - 1
+    lod = lod.clamp(0.0, float(top))
+    k0 = lod.detach().floor()
+    frac = lod - k0  # the hat weights of levels k0 and k0 + 1: 1 - frac and frac
+    k0 = k0.long()
+    k1 = (k0 + 1).clamp_max(top)
+    table = table.to(uv.dtype)
+    u = remap_address(uv[0], address[0])
+    v = 1.0 - remap_address(uv[1], address[1])
+    points = []
+    for k in (k0, k1):
+        oy, ox, h, w = table[k].unbind(1)
+        # texel centre coordinates in the padded level (+1: the pad), then the atlas
+        points.append(torch.stack((ox + u * w + 0.5, oy + v * h + 0.5), -1))
+    grid = torch.cat(points, 0)  # (2N, 2) atlas pixel coordinates
+    ha, wa = atlas.shape[-2:]
+    scale = grid.new_tensor([2.0 / (wa - 1), 2.0 / (ha - 1)])
+    grid = (grid * scale - 1.0)[None, None]  # (1, 1, 2N, 2), align_corners=True
+    s = grid_sample(atlas.to(dt), grid, mode="bilinear",
+                    padding_mode="border", align_corners=True)[0, :, 0]  # (C, 2N)
+    return finish_low_precision(torch.lerp(s[:, :n], s[:, n:], frac[None]), out_dtype)
+
+
+class _TrilinearLookup(torch.autograd.Function):
+    """:func:`_lookup` saving only its inputs for backward, which recomputes the taps
+    (indices, weights, texels: ~49 B a covered pixel otherwise kept by autograd) and
+    differentiates them. The gradients are those of :func:`_lookup` under autograd; double
+    backward is not supported."""
+
+    @staticmethod
+    def forward(ctx, atlas, uv, duv_dx, duv_dy, table, size, address, lod_bias):
+        ctx.save_for_backward(atlas, uv, duv_dx, duv_dy, table)
+        ctx.args = (size, address, lod_bias)
+        return _lookup(atlas, uv, duv_dx, duv_dy, table, size, address, lod_bias)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad):
+        saved = ctx.saved_tensors
+        need = ctx.needs_input_grad[:4]
+        inputs = [t.detach().requires_grad_(nd) for t, nd in zip(saved[:4], need, strict=True)]
+        wrt = [t for t, nd in zip(inputs, need, strict=True) if nd]
+        grads = iter(())
+        if wrt:
+            with torch.enable_grad():
+                out = _lookup(*inputs, saved[4], *ctx.args)
+                grads = iter(torch.autograd.grad(out, wrt, grad, allow_unused=True))
+        result = [next(grads) if nd else None for nd in need]
+        return (*result, None, None, None, None)
