@@ -22,9 +22,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
+import torch.nn.functional as F
 from torch.autograd.function import once_differentiable
 
-from .numerics import compute_dtype, finish_low_precision, grid_sample
+from .numerics import LOW_PRECISION, compute_dtype, finish_low_precision, grid_sample
 from .texture import (
     address_pair,
     build_mip_pyramid,
@@ -121,15 +122,14 @@ class MipAtlas:
                                       self.address, float(lod_bias))
 
 
-def _lookup(atlas: torch.Tensor, uv: torch.Tensor, duv_dx: torch.Tensor, duv_dy: torch.Tensor,
-            table: torch.Tensor, size: tuple[int, int], address: tuple[str, str],
-            lod_bias: float) -> torch.Tensor:
-    """The trilinear lookup of :meth:`MipAtlas.sample` (``(C, N)``), in plain tensor ops:
-    run without autograd by the forward of :class:`_TrilinearLookup`, with it by the
-    backward."""
-    n = uv.shape[1]
-    out_dtype = uv.dtype
-    dt = compute_dtype(uv, atlas)  # float32 for half-precision lookups
+def _taps(uv: torch.Tensor, duv_dx: torch.Tensor, duv_dy: torch.Tensor, table: torch.Tensor,
+          size: tuple[int, int], address: tuple[str, str], lod_bias: float,
+          atlas_size: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """The two taps of N trilinear lookups: the weight ``frac`` ``(N,)`` of the upper level
+    (the lower one has ``1 - frac``) and the ``(1, 1, 2N, 2)`` ``grid_sample`` grid
+    (align_corners=True) of the lower-level taps, then the upper-level ones; in
+    :func:`compute_dtype` of ``uv`` (float32 for half precision)."""
+    dt = compute_dtype(uv)
     uv, duv_dx, duv_dy = uv.to(dt), duv_dx.to(dt), duv_dy.to(dt)
     lod = compute_lod(duv_dx[None, :, None], duv_dy[None, :, None], size,
                       lod_bias)[0, 0, 0]  # (N,)
@@ -148,37 +148,72 @@ def _lookup(atlas: torch.Tensor, uv: torch.Tensor, duv_dx: torch.Tensor, duv_dy:
         # texel centre coordinates in the padded level (+1: the pad), then the atlas
         points.append(torch.stack((ox + u * w + 0.5, oy + v * h + 0.5), -1))
     grid = torch.cat(points, 0)  # (2N, 2) atlas pixel coordinates
-    ha, wa = atlas.shape[-2:]
+    ha, wa = atlas_size
     scale = grid.new_tensor([2.0 / (wa - 1), 2.0 / (ha - 1)])
-    grid = (grid * scale - 1.0)[None, None]  # (1, 1, 2N, 2), align_corners=True
-    s = grid_sample(atlas.to(dt), grid, mode="bilinear",
-                    padding_mode="border", align_corners=True)[0, :, 0]  # (C, 2N)
-    return finish_low_precision(torch.lerp(s[:, :n], s[:, n:], frac[None]), out_dtype)
+    return frac, (grid * scale - 1.0)[None, None]  # (1, 1, 2N, 2), align_corners=True
 
 
 class _TrilinearLookup(torch.autograd.Function):
-    """:func:`_lookup` saving only its inputs for backward, which recomputes the taps
-    (indices, weights, texels: ~49 B a covered pixel otherwise kept by autograd) and
-    differentiates them. The gradients are those of :func:`_lookup` under autograd; double
-    backward is not supported."""
+    """The lookup of :meth:`MipAtlas.sample`: ``(C, N)``, the lerp by ``frac`` of the
+    bilinear taps of two levels (one ``grid_sample`` call). Saves only its inputs for
+    backward, which recomputes the taps (the per-tap indices, weights and texels otherwise
+    kept by autograd, ~49 B a pixel at 512², issue 23) and applies the derivatives of
+    ``torch.lerp`` and ``grid_sample`` itself. Double backward is not supported."""
 
     @staticmethod
     def forward(ctx, atlas, uv, duv_dx, duv_dy, table, size, address, lod_bias):
         ctx.save_for_backward(atlas, uv, duv_dx, duv_dy, table)
         ctx.args = (size, address, lod_bias)
-        return _lookup(atlas, uv, duv_dx, duv_dy, table, size, address, lod_bias)
+        n = uv.shape[1]
+        dt = compute_dtype(uv, atlas)  # float32 for half-precision lookups
+        frac, grid = _taps(uv.to(dt), duv_dx.to(dt), duv_dy.to(dt), table, size, address,
+                           lod_bias, tuple(atlas.shape[-2:]))
+        s = grid_sample(atlas.to(dt), grid, mode="bilinear",
+                        padding_mode="border", align_corners=True)[0, :, 0]  # (C, 2N)
+        return finish_low_precision(torch.lerp(s[:, :n], s[:, n:], frac[None]), uv.dtype)
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad):
-        saved = ctx.saved_tensors
-        need = ctx.needs_input_grad[:4]
-        inputs = [t.detach().requires_grad_(nd) for t, nd in zip(saved[:4], need, strict=True)]
-        wrt = [t for t, nd in zip(inputs, need, strict=True) if nd]
-        grads = iter(())
-        if wrt:
-            with torch.enable_grad():
-                out = _lookup(*inputs, saved[4], *ctx.args)
-                grads = iter(torch.autograd.grad(out, wrt, grad, allow_unused=True))
-        result = [next(grads) if nd else None for nd in need]
-        return (*result, None, None, None, None)
+        atlas, uv, duv_dx, duv_dy, table = ctx.saved_tensors
+        need_atlas, need_uv, need_dx, need_dy = ctx.needs_input_grad[:4]
+        n = uv.shape[1]
+        dt = compute_dtype(uv, atlas)
+        leaves = [t.detach().to(dt).requires_grad_(nd) for t, nd in zip(
+            (uv, duv_dx, duv_dy), (need_uv, need_dx, need_dy), strict=True)]
+        with torch.enable_grad():  # the per-point part only: coordinates and level weights
+            frac, grid = _taps(*leaves, table, *ctx.args, tuple(atlas.shape[-2:]))
+        tex, grid0, w1 = atlas.detach().to(dt), grid.detach(), frac.detach()[None]
+        grad = grad.to(dt)
+        s = None
+        if need_dx or need_dy or uv.dtype in LOW_PRECISION:
+            s = F.grid_sample(tex, grid0, mode="bilinear", padding_mode="border",
+                              align_corners=True)[0, :, 0]  # (C, 2N)
+        if uv.dtype in LOW_PRECISION:  # finish_low_precision's clamp passes grads inside
+            big = torch.finfo(uv.dtype).max
+            out = torch.lerp(s[:, :n], s[:, n:], w1)
+            grad = grad * ((out >= -big) & (out <= big))
+            del out
+        outs, grads_out = [], []
+        if need_dx or need_dy:  # d lerp(a, b, w) / dw = b - a
+            outs.append(frac)
+            grads_out.append((grad * (s[:, n:] - s[:, :n])).sum(0))
+        del s
+        grad_atlas = None
+        if need_atlas or need_uv:  # d lerp / da = 1 - w, d lerp / db = w
+            g = torch.cat((grad * (1.0 - w1), grad * w1), 1)[None, :, None]  # (1, C, 1, 2N)
+            # grid_sample's own backward: interpolation 0 = bilinear, padding 1 = border
+            ga, gg = torch.ops.aten.grid_sampler_2d_backward(
+                g, tex, grid0, 0, 1, True, [need_atlas, need_uv])
+            del g
+            if need_atlas:
+                grad_atlas = ga.to(atlas.dtype)
+            if need_uv:
+                outs.append(grid)
+                grads_out.append(gg)
+        wrt = [t for t in leaves if t.requires_grad]
+        grads = iter(torch.autograd.grad(outs, wrt, grads_out, allow_unused=True) if wrt else ())
+        result = [next(grads) if t.requires_grad else None for t in leaves]
+        result = [g if g is None else g.to(t.dtype) for g, t in zip(
+            result, (uv, duv_dx, duv_dy), strict=True)]
+        return (grad_atlas, *result, None, None, None, None)

@@ -854,7 +854,9 @@ class Renderer(nn.Module):
         else:
             background = color.view(1, 3, 1, 1)
         if plan.alpha == "none" and not torch.is_grad_enabled():  # radiance is this call's
-            image = radiance.add_(transmittance * background)  # own frame: no third frame
+            for c in range(3):  # own frame: added in place, a channel at a time (memory)
+                radiance[:, c:c + 1].add_(transmittance * background[:, c:c + 1])
+            image = radiance
         else:
             image = radiance + transmittance * background
         if plan.fog:
