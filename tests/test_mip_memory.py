@@ -53,11 +53,15 @@ def test_values_match_definition() -> None:
     torch.testing.assert_close(out, _reference(tex, uv, dx, dy))
 
 
-def test_gradcheck_textures_uv_and_derivatives() -> None:
+@pytest.mark.parametrize("wrt", ["all", "uv", "dx", "tex"])
+def test_gradcheck_textures_uv_and_derivatives(wrt: str) -> None:
     g = torch.Generator().manual_seed(1)
-    tex = torch.rand(2, 8, 8, dtype=D64, generator=g, requires_grad=True)
-    tex2 = torch.rand(1, 8, 8, dtype=D64, generator=g, requires_grad=True)
-    uv, dx, dy = (t.requires_grad_() for t in _inputs(12, 8, seed=1))
+    tex = torch.rand(2, 8, 8, dtype=D64, generator=g).requires_grad_(wrt in ("all", "tex"))
+    tex2 = torch.rand(1, 8, 8, dtype=D64, generator=g).requires_grad_(wrt == "all")
+    uv, dx, dy = _inputs(12, 8, seed=1)
+    uv.requires_grad_(wrt in ("all", "uv"))
+    dx.requires_grad_(wrt in ("all", "dx"))
+    dy.requires_grad_(wrt == "all")
 
     def f(a, b, uv, dx, dy):
         return MipAtlas([a, b], address=("wrap", "mirror")).sample(uv, dx, dy, lod_bias=0.1)
@@ -107,3 +111,14 @@ def test_only_needed_gradients_and_no_grad_mode() -> None:
     with torch.no_grad():
         assert not atlas.sample(uv, dx, dy).requires_grad
     assert torch.equal(atlas.sample(uv, dx, dy).detach(), out.detach())
+
+
+def test_half_precision_saturation_blocks_gradient() -> None:
+    """float16 lookups saturate to the finite range (finish_low_precision): no gradient
+    reaches the texels of a saturated channel, as for the clamp it is."""
+    tex = torch.cat((torch.full((1, 16, 16), 7e4), torch.rand(1, 16, 16))).requires_grad_()
+    uv, dx, dy = _inputs(64, 16, dtype=torch.float16, seed=5)
+    out = MipAtlas([tex]).sample(uv, dx, dy)
+    assert out.dtype == torch.float16 and bool((out[0] == 65504).all())
+    out.float().sum().backward()
+    assert bool((tex.grad[0] == 0).all()) and tex.grad[1].sum() > 0
