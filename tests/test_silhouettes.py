@@ -63,6 +63,7 @@ def test_silhouettes_equal_each_group_rasterized_alone(layers):
                                  layers=layers, groups=groups, num_groups=4)
             got = frags.silhouettes
             assert got.shape == (3, 4, *RES) and got.dtype == torch.bool
+            assert got.is_contiguous()
             assert torch.equal(got, _reference(clip, faces, groups, 4, cull, fr))
             assert not got[:, 3].any()  # a group with no faces
             plain = tr.rasterize(clip, faces, RES, cull_backfaces=cull, face_ranges=fr,
@@ -100,3 +101,5 @@ def test_groups_bad_input_is_named():
         tr.rasterize(clip, faces, RES, groups=groups - 2)
     with pytest.raises(TypeError, match="groups"):
         tr.rasterize(clip, faces, RES, groups=groups.float())
+    with pytest.raises(ValueError, match="num_groups"):
+        tr.rasterize(clip, faces, RES, groups=groups.clamp(max=-1), num_groups=-1)

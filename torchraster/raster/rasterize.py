@@ -297,7 +297,7 @@ def rasterize(
     frags = [_fragments_from_keys(clip_pos, faces, k, (b, h, w), derivatives) for k in keys]
     frags[0].deeper = tuple(frags[1:])
     if silhouettes is not None:  # (B, G + 1, H, W): the last group collects face group -1
-        frags[0].silhouettes = silhouettes[:, :-1]
+        frags[0].silhouettes = silhouettes[:, :-1].contiguous()  # a view at batch 1
     return frags[0]
 
 
@@ -308,6 +308,8 @@ def _silhouette_observer(groups: torch.Tensor, num_groups: int | None, n_faces: 
     check_tensor("groups", groups, (n_faces,), integer=True)
     groups = groups.to(device=device, dtype=torch.int64)
     lo, hi = (int(v) for v in torch.aminmax(groups)) if n_faces else (-1, -1)
+    if num_groups is not None and (isinstance(num_groups, bool) or int(num_groups) < 0):
+        raise ValueError(f"num_groups: expected an int >= 0, got {num_groups!r}")
     g = hi + 1 if num_groups is None else int(num_groups)
     if lo < -1 or hi >= g:
         raise ValueError(f"groups: expected values in [-1, {g}) (num_groups={num_groups}), "
