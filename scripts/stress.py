@@ -153,7 +153,7 @@ def _check_numerics(clip: torch.Tensor, faces: torch.Tensor, res, cull: bool, ge
     # rasterize_depth in bands of rows (forced: random band heights) against one pass
     whole = tr.raster.rasterize_depth(clip.detach(), faces, res, cull)
     band_pixels, raster_module.DEPTH_BAND_PIXELS = raster_module.DEPTH_BAND_PIXELS, max(
-        1, clip.shape[0] * res[1] * _randint(gen, 1, 40))
+        1, res[1] * _randint(gen, 1, 40))
     try:
         banded = tr.raster.rasterize_depth(clip.detach(), faces, res, cull)
     finally:

@@ -344,9 +344,11 @@ def rasterize_depth(
     """Depth-only rasterization (shadow maps, depth pre-passes): the visibility half of
     :func:`rasterize` without the barycentric pass, so no gradients.
 
-    Frames of more than :data:`DEPTH_BAND_PIXELS` pixels are resolved in bands of rows
+    Views of more than :data:`DEPTH_BAND_PIXELS` pixels are resolved in bands of rows
     (:func:`resolve_keys` ``rows=``; identical values), so the int64 resolve keys never
-    take more than a band (a 4096² shadow-map face: 16 MB instead of 128 MB).
+    take more than a band (a 4096² shadow-map face: 16 MB instead of 128 MB). Batches of
+    smaller views take one pass (each band repeats the triangle setup; callers bound the
+    batch by memory).
 
     Args:
         clip_pos, faces, resolution, cull_backfaces, face_ranges, tile, memory_budget: as
@@ -380,7 +382,9 @@ def rasterize_depth(
         if out.dtype != torch.float32 or out.device != clip_pos.device:
             raise TypeError(f"out: expected a float32 tensor on {clip_pos.device}, got "
                             f"{out.dtype} on {out.device}")
-    band = max(int(tile), DEPTH_BAND_PIXELS // max(1, b * w) // int(tile) * int(tile))
+    band = h  # one pass unless one view is large (batches of small maps: one pass each)
+    if h * w > DEPTH_BAND_PIXELS:
+        band = max(int(tile), DEPTH_BAND_PIXELS // max(1, b * w) // int(tile) * int(tile))
     for y0 in range(0, h, band):
         y1 = min(h, y0 + band)
         rows = None if (y0, y1) == (0, h) else (y0, y1)
@@ -436,8 +440,8 @@ def _nearest_keys(clip_pos, faces, resolution, cull_backfaces, face_ranges, tile
 #: Peak bytes per pixel of rasterize_depth beyond the chunk budget: the int64 key and the
 #: float32 result.
 _DEPTH_BYTES_PER_PIXEL = 16
-#: rasterize_depth resolves frames of more pixels than this (batch included) in bands of
-#: whole tile rows, each with its own int64 keys (2**21 keys: 16 MB).
+#: rasterize_depth resolves views of more pixels than this in bands of whole tile rows,
+#: each with its own int64 keys (at most 2**21 keys with the batch: 16 MB).
 DEPTH_BAND_PIXELS = 2**21
 
 

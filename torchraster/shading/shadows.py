@@ -87,6 +87,7 @@ import torch
 from torchraster._validate import check_float, check_int, check_tensor
 from torchraster.numerics import compute_dtype, safe_normalize
 from torchraster.raster import antialias, rasterize, rasterize_depth
+from torchraster.raster.rasterize import DEFAULT_MEMORY_BUDGET
 
 FILTERS = ("hard", "pcf", "pcss", "vsm")
 PATTERNS = ("poisson", "grid")
@@ -94,9 +95,10 @@ PATTERNS = ("poisson", "grid")
 MAX_SPOT_FOV_DEG: float = 120.0
 #: Bytes of shadow-map memory rendered per rasterize call (views are chunked to fit).
 SHADOW_MEMORY_BUDGET: int = 256 * 2**20
-#: Bytes of candidate temporaries per chunk of a shadow map's depth resolve
-#: (``rasterize_depth(memory_budget=...)``; the main pass uses 96 MB).
-SHADOW_RASTER_BUDGET: int = 32 * 2**20
+#: Bytes of candidate temporaries per chunk of the depth resolve of maps rendered straight
+#: into the group's maps (over :data:`DIRECT_MAP_TEXELS`; other maps use rasterize_depth's
+#: 96 MB, whose fewer, larger chunks are faster with many views per call).
+DIRECT_RASTER_BUDGET: int = 32 * 2**20
 #: Pixel-taps evaluated at once by the filters (bounds the temporaries of one chunk).
 TAP_CHUNK_ELEMENTS: int = 2**22
 #: Largest tan(angle) between normal and light used by the slope-scaled bias (~84 deg).
@@ -1045,8 +1047,9 @@ def render_shadow_maps(groups: Sequence[ShadowMaps], positions: torch.Tensor,
                                       persp_rows[sl])
                 else:  # large maps: rendered straight into the group's maps
                     into = _map_rows(members, spans, slots, k, clip.shape[0])
+                    budget = DEFAULT_MEMORY_BUDGET if into is None else DIRECT_RASTER_BUDGET
                     ndc = rasterize_depth(clip, faces, (size, size), face_ranges=ranges,
-                                          out=into, memory_budget=SHADOW_RASTER_BUDGET)
+                                          out=into, memory_budget=budget)
                     if any(g.face_id is not None for g in members):
                         with torch.no_grad():  # the same winners as rasterize_depth
                             fid = rasterize(clip.detach(), faces, (size, size),
