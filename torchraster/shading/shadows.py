@@ -1032,6 +1032,7 @@ def render_shadow_maps(groups: Sequence[ShadowMaps], positions: torch.Tensor,
                   and all(g.face_id is None for g in members))  # the cache keeps no face ids
         for k in range(0, all_m.shape[0], per_call):
             sl = slice(k, k + per_call)
+            into = None  # the group's own maps when rendered in place (_map_rows)
             if cached:
                 ndc = cache.render(pos, faces, face_ranges, items[sl], all_m[sl], size,
                                    per_call)
@@ -1064,7 +1065,7 @@ def render_shadow_maps(groups: Sequence[ShadowMaps], positions: torch.Tensor,
                 a, z = max(lo, k), min(hi, k + ndc.shape[0])
                 if a < z:
                     _store_maps(g, ndc[a - k:z - k].to(positions.dtype),
-                                slot[a - lo:z - lo])
+                                slot[a - lo:z - lo], in_place=into is not None)
             del ndc
         for g, slot in zip(members, slots, strict=True):
             nv = g.view.shape[2]
@@ -1150,11 +1151,12 @@ def _map_rows(members: list[ShadowMaps], spans: list[tuple[int, int]],
 DIRECT_MAP_TEXELS = 2048**2
 
 
-def _store_maps(g: ShadowMaps, ndc: torch.Tensor, slot: torch.Tensor) -> None:
+def _store_maps(g: ShadowMaps, ndc: torch.Tensor, slot: torch.Tensor,
+                in_place: bool = False) -> None:
     """Write rendered NDC depth ``(N, S, S)`` of views ``slot`` ``(N,)`` (flat indices
     into ``(B * Ls * NV)``) into ``g.depth`` as linear depth, or VSM moments; ``ndc`` may
-    also be the unblurred moments ``(N, 2, S, S)`` of :func:`_vsm_render`, or already be
-    those maps (:func:`_map_rows`: converted in place)."""
+    also be the unblurred moments ``(N, 2, S, S)`` of :func:`_vsm_render`, or, with
+    ``in_place``, already be those maps (:func:`_map_rows`: converted where they are)."""
     if ndc.dim() == 4:  # VSM moments with autograd: blurred, out of place
         val = _vsm_blur(ndc, g.settings)
         shape = g.depth.shape
@@ -1165,7 +1167,7 @@ def _store_maps(g: ShadowMaps, ndc: torch.Tensor, slot: torch.Tensor) -> None:
     if g.settings.filter != "vsm" and not (ndc.requires_grad or near.requires_grad
                                            or far.requires_grad):
         lin = _linear_depth_inplace(ndc, near, far, g.perspective)
-        if lin.data_ptr() != g.depth.view(-1, *ndc.shape[1:])[int(slot[0])].data_ptr():
+        if not in_place:
             g.depth.view(-1, *ndc.shape[1:]).index_copy_(0, slot, lin)
         return
     lin = _linear_depth(ndc, near, far, g.perspective)
