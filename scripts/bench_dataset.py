@@ -105,6 +105,29 @@ def shadow_map_sizes(cfg, frames: int) -> list[list[str]]:
     return rows
 
 
+def png_levels(cfg, repeats: int = 5) -> list[list[str]]:
+    """``outputs.png_compression`` as a knob: the time to write one labelled view's files
+    (the config's channels, png + npy, previews) and the bytes of its PNGs, per zlib level
+    (lossless at every level: the same pixels; medians of ``repeats`` writes)."""
+    from torchraster import pipeline
+
+    render, views = _renderer(cfg, list(cfg.outputs.channels))
+    result = render(views[3].camera_config, views[3].folder, views[3].frame)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for level in (0, 1, 3, 6, 9):
+            times, size = [], 0
+            for r in range(repeats + 1):  # the first write warms the file system up
+                t0 = time.perf_counter()
+                files = pipeline.write_outputs(result, Path(tmp) / f"{level}-{r}",
+                                               cfg.outputs.formats, cfg.outputs.previews, level)
+                times.append(time.perf_counter() - t0)
+                size = sum(f.stat().st_size for f in files if f.suffix == ".png")
+            t = statistics.median(times[1:])
+            rows.append([str(level), f"{t * 1e3:.0f} ms", f"{size / 1024:.0f} KiB"])
+    return rows
+
+
 def labelled_frame(cfg, frames: int) -> tuple[float, float]:
     """(frames per second, seconds per frame) of the config's own channels, no files."""
     render, views = _renderer(cfg, list(cfg.outputs.channels))
@@ -207,6 +230,8 @@ def main() -> None:
     ap.add_argument("--scenes", type=int, default=1, help="scenes of the whole runs")
     ap.add_argument("--skip-runs", action="store_true", help="no whole-run rows")
     ap.add_argument("--no-write", action="store_true", help="print only")
+    ap.add_argument("--png-only", action="store_true",
+                    help="only the PNG compression table (section dataset-png)")
     ap.add_argument("--before", metavar="SRC", help="a checkout of an earlier tree: its whole "
                     "runs alternate with this tree's (2 each, medians)")
     ap.add_argument("--blender", metavar="PYTHON", help="a Python with bpy: time Blender on "
@@ -216,6 +241,20 @@ def main() -> None:
 
     torch.set_num_threads(os.cpu_count() or 1)
     cfg = tr.load_config(CONFIG)
+    if args.png_only:
+        rows = png_levels(cfg)
+        table = markdown_table(["outputs.png_compression", "write a view (files)",
+                                "PNG bytes a view"], rows)
+        print(table)
+        if not args.no_write:
+            update_section("dataset-png", (
+                "## Dataset: PNG compression level against write time\n\n"
+                "`outputs.png_compression` (zlib level, 0-9; lossless at every level, so the "
+                "trade is time against bytes, not error): one labelled view of "
+                "`configs/dataset_movi.yaml` (its channels as png + npy, instance / semantic "
+                "previews) written to a temporary folder, median of 5 writes after one. The "
+                "npy files (~5 MB a view) do not depend on the level. Default: 1.\n\n" + table))
+        return
     h, w = cfg.render.size
     costs = label_costs(cfg, args.frames, args.turns)
     fps, per = labelled_frame(cfg, args.frames)

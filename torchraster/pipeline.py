@@ -434,8 +434,8 @@ def sweep_temp_files(folder: Path) -> list[Path]:
 
 
 #: zlib level of the PNGs the batch command writes (``outputs.png_compression``): level 1
-#: writes a labelled 256² view's 12 PNGs in ~40 % of level 6's time for ~35 % more bytes
-#: (docs/benchmarks.md, dataset); PNG is lossless at every level.
+#: writes a labelled 256² view's files in ~55 % of level 6's time for ~35 % more PNG bytes
+#: (docs/benchmarks.md, dataset-png); PNG is lossless at every level.
 PNG_COMPRESSION = 1
 
 

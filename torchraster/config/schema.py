@@ -974,8 +974,8 @@ class OutputConfig(_Strict):
                            "`semantic_preview.png`: ids in distinct colours")
     png_compression: Annotated[int, Field(ge=0, le=9)] = Field(
         1, description="zlib level of the PNGs (0 none .. 9 smallest; lossless at every "
-        "level): 1 writes a labelled 256² view's PNGs in ~40 % of level 6's time for ~35 % "
-        "more bytes")
+        "level): 1 writes a labelled 256² view's files in ~55 % of level 6's time for ~35 % "
+        "more PNG bytes (docs/benchmarks.md, dataset-png)")
     track_points: Annotated[int, Field(ge=1, le=1_000_000)] = Field(
         256, description="query points per video of the `tracks` export (TAP-Vid style: "
         "drawn among the first frame's covered pixels)")
