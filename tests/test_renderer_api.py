@@ -170,3 +170,32 @@ def test_antialias_gives_silhouette_gradients_to_geometry():
     plain = tr.Renderer(64, shading="unlit")(tr.RenderScene(base * scale, faces), view.double(),
                                               proj.double())
     assert not plain.alpha.requires_grad
+
+
+def test_antialias_topology_is_kept_only_for_equal_faces():
+    """The Renderer keeps the edge adjacency of the last faces it antialiased: an equal
+    faces tensor (a scene rebuilt every frame) reuses it, faces edited in place or new
+    faces get their own, so every call equals a fresh Renderer's."""
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    pos = torch.tensor(mesh.vertices, dtype=torch.float32)
+    faces = torch.tensor(mesh.faces)
+    view = tr.camera.look_at([0.0, 0.4, 3.0], [0.0, 0.0, 0.0])
+    proj = tr.camera.perspective(40.0, 1.0, 0.1)
+    aa = tr.RasterSettings(antialias=True)
+    renderer = tr.Renderer(48, shading="unlit", raster=aa)
+
+    def same_as_fresh(scene):
+        out = renderer(scene, view, proj)
+        fresh = tr.Renderer(48, shading="unlit", raster=aa)(scene, view, proj)
+        assert torch.equal(out.alpha, fresh.alpha) and torch.equal(out.image, fresh.image)
+        return out
+
+    first = same_as_fresh(tr.RenderScene(pos, faces))
+    kept = renderer._kept_topology[1]
+    same_as_fresh(tr.RenderScene(pos, faces.clone()))  # equal faces: the kept adjacency
+    assert renderer._kept_topology[1] is kept
+    faces[::2] = faces[::2].flip(1)  # edited in place (winding of every other face)
+    same_as_fresh(tr.RenderScene(pos, faces))
+    assert renderer._kept_topology[1] is not kept
+    half = tr.RenderScene(pos, faces[: len(faces) // 2])  # other faces: a hole, new edges
+    assert not torch.equal(same_as_fresh(half).alpha, first.alpha)

@@ -54,7 +54,7 @@ from .motion import (
 )
 from .numerics import finish_low_precision, safe_normalize
 from .post.ssr import environment_specular, specular_weight
-from .raster import Fragments, antialias, rasterize
+from .raster import Fragments, antialias, antialias_topology, rasterize
 from .scene import RenderScene, as_render_scene
 from .settings import (
     LIT_MODELS,
@@ -487,6 +487,7 @@ class Renderer(nn.Module):
         self.ssao = ssao if ssao is not None and getattr(ssao, "enabled", True) else None
         self.ssr = ssr if ssr is not None and getattr(ssr, "enabled", True) else None
         self._raster_memo = _RasterMemo()
+        self._kept_topology: tuple[torch.Tensor, torch.Tensor] | None = None
         self.mip_cache = MipCache(self.texture_settings.cache_bytes)
         if not isinstance(shadows, (bool, ShadowSettings)):
             raise TypeError(f"shadows: expected True, False or a ShadowSettings, got "
@@ -868,7 +869,7 @@ class Renderer(nn.Module):
             alpha = gb.mask * gb.alpha if gb.alpha is not None else gb.mask
         if plan.antialias:  # one call for colour and coverage
             both = antialias(torch.cat([image, alpha.to(image.dtype)], 1), visible, clip,
-                             scene.faces)
+                             scene.faces, topology=self._topology(scene.faces))
             image, alpha = both[:, :3], both[:, 3:]
         if plan.edge_supersample > 1:  # re-shade the edge pixels at k x k sub-samples
             image, alpha, plan = self._edge_pass(plan, scene, clip, face_ranges, normals, view,
@@ -1099,6 +1100,17 @@ class Renderer(nn.Module):
         return shade(gb, camera_position=eye, lights=lights, model=self.model, ibl=ibl,
                      multiscatter=plan.multiscatter,
                      visibility=visibility)
+
+    def _topology(self, faces: torch.Tensor) -> torch.Tensor:
+        """``antialias_topology(faces)``, kept for the next call with the same faces
+        (compared by value: a scene rebuilt every frame passes equal faces)."""
+        kept = self._kept_topology
+        if kept is not None and kept[0].shape == faces.shape and kept[0].device == faces.device \
+                and torch.equal(kept[0], faces):
+            return kept[1]
+        topology = antialias_topology(faces)
+        self._kept_topology = (faces.clone(), topology)
+        return topology
 
     def _edge_pass(self, plan: RenderPlan, scene: RenderScene, clip: torch.Tensor,
                    face_ranges: torch.Tensor | None, normals: torch.Tensor | None,

@@ -349,6 +349,27 @@ ORIENTATION_POWER = 4
 MAX_WALK = 16
 
 
+def _scaled_xyw(v: torch.Tensor) -> torch.Tensor:
+    """:func:`_scaled` of points given as (x, y, w) ``(3, ...)``."""
+    return v / v.abs().amax(0).clamp_min(torch.finfo(v.dtype).tiny)
+
+
+def _cross(a: torch.Tensor, b: torch.Tensor, nxt: torch.Tensor, prv: torch.Tensor
+           ) -> torch.Tensor:
+    """Cross products over dim 0 of stacked 2-D homogeneous points ``(3, ...)``: the
+    lines through them, component for component the float operations of :func:`_line`.
+    ``nxt``, ``prv``: the index tensors ``[1, 2, 0]`` and ``[2, 0, 1]`` (a roll by one,
+    as a gather: ``roll`` concatenates two slices)."""
+    return (a.index_select(0, nxt) * b.index_select(0, prv)
+            - a.index_select(0, prv) * b.index_select(0, nxt))
+
+
+def _dot3(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a . b`` over dim 0 of ``(3, ...)`` tensors, summed in :func:`_dot`'s order."""
+    p = a * b
+    return p[0] + p[1] + p[2]
+
+
 def _walk(clip_t, faces, topology, vert_base, face, goal, o, n, axis, resolution):
     """No-grad: walk the segment from pixel ``o``'s centre to ``n``'s over the mesh,
     starting in ``face`` (visible at ``o``), across internal edges, up to the first
@@ -367,7 +388,7 @@ def _walk(clip_t, faces, topology, vert_base, face, goal, o, n, axis, resolution
     Returns (hit, reached, face, edge, t, blend), each (N,): ``hit`` the segment reaches a
     silhouette edge, ``edge`` of ``face``, at fraction ``t``; ``reached`` the walk entered
     ``goal`` first; ``blend`` the hit is between the near and far planes and the edge is
-    not parallel to the pair.
+    not parallel to the pair (``face``, ``edge``, ``t``, ``blend``: of the rows that hit).
     """
     dtype, device = clip_t.dtype, o.device
     count = o.numel()
@@ -375,64 +396,75 @@ def _walk(clip_t, faces, topology, vert_base, face, goal, o, n, axis, resolution
     reached, blend = torch.zeros_like(hit), torch.zeros_like(hit)
     face, edge = face.clone(), torch.zeros_like(o)
     t_out = torch.zeros(count, dtype=dtype, device=device)
-    entry = torch.full_like(o, -1)  # edge of the current face the walk came in through
-    x0_all, y0_all = _pixel_ndc(o, resolution, dtype)
-    dx_all, dy_all = _step(o, n, axis, resolution, dtype)
+    x0, y0 = _pixel_ndc(o, resolution, dtype)
+    dx, dy = _step(o, n, axis, resolution, dtype)
+    # the walking rows, compacted as they finish: (x0, y0, 0, dx, dy) and (row, face,
+    # vertex base, entry edge, goal); the entry edge is the one the walk came in through
+    geo = torch.stack([x0, y0, torch.zeros_like(x0), dx, dy])
+    state = torch.stack([torch.arange(count, device=device), face, vert_base,
+                         torch.full_like(o, -1), goal])
     slots = torch.arange(3, device=device)[:, None]
-    rows = torch.arange(count, device=device)
+    nxt, prv = torch.tensor([1, 2, 0], device=device), torch.tensor([2, 0, 1], device=device)
+    xyw = clip_t.index_select(0, torch.tensor([0, 1, 3], device=device))  # z: not needed
+    stops = []  # (row, face, edge) of each walk that reached a silhouette
     for _ in range(MAX_WALK):
-        if rows.numel() == 0:
+        if state.shape[1] == 0:
             break
-        cur, base = face.index_select(0, rows), vert_base.index_select(0, rows)
-        x0, y0 = x0_all.index_select(0, rows), y0_all.index_select(0, rows)
-        dx, dy = dx_all.index_select(0, rows), dy_all.index_select(0, rows)
-        corner = faces.index_select(0, cur).T  # (3, N)
-        v = _scaled(clip_t.index_select(1, (corner + base).reshape(-1)).view(4, 3, -1))
-        a = _sheared(v, x0, y0)  # vertex k = start of edge k, each (3, N)
-        bv = tuple(c.roll(-1, 0) for c in a)  # end of edge k
-        line = _line(a, bv)
-        t, par = _crossing_t(line, dx, dy)
-        xx, xy = t * dx, t * dy
-        alpha = _dot(line, _line((xx, xy, 1.0), bv))  # X x b . L
-        beta = _dot(line, _line(a, (xx, xy, 1.0)))  # a x X . L
-        on = ((par != 0) & (t >= 0) & (alpha >= 0) & (beta >= 0)
-              & (slots != entry.index_select(0, rows)))
+        rows, cur, base, entry, target = state
+        corner = faces.index_select(0, cur).T  # (3, R)
+        v = _scaled_xyw(xyw.index_select(1, (corner + base).reshape(-1)).view(3, 3, -1))
+        a = v - geo[:3, None] * v[2]  # (3, 3, R): _sheared vertex k = start of edge k
+        b = a.index_select(1, nxt)  # end of edge k
+        line = _cross(a, b, nxt, prv)
+        t, par = _crossing_t(line, geo[3], geo[4])
+        x = torch.stack([t * geo[3], t * geo[4], torch.ones_like(t)])
+        on = ((par != 0) & (t >= 0) & (_dot3(line, _cross(x, b, nxt, prv)) >= 0)  # alpha >= 0
+              & (_dot3(line, _cross(a, x, nxt, prv)) >= 0) & (slots != entry))  # beta >= 0
         k = torch.where(on[0], 0, torch.where(on[1], 1, 2))  # the first crossed edge
-        t = _at(t, k)
-        line = tuple(_at(c, k) for c in line)
-        slot = topology.view(-1).index_select(0, cur * 3 + k)
+        t = t.gather(0, k[None])[0]
+        line = line.gather(1, k.expand(3, 1, -1))[:, 0]  # (3, R)
+        slot = topology.view(-1).index_select(0, cur * 3 + k)  # 3 g + l across edge k
         nb_face = floor_div_exact(slot.clamp_min(0), 3)
         nb_edge = slot.clamp_min(0) - nb_face * 3
-        nb_vert = faces.view(-1).index_select(0, nb_face * 3 + (nb_edge + 2) % 3)
-        nb = _sheared(_scaled(clip_t.index_select(1, nb_vert + base)), x0, y0)
-        opposite = tuple(_at(c, (k + 2) % 3) for c in a)
-        silhouette = (slot < 0) | (torch.sign(_dot(line, nb))
-                                   * torch.sign(_dot(line, opposite)) > 0)
+        nb_vert = faces.view(-1).index_select(0, nb_face * 3 + prv.index_select(0, nb_edge))
+        nb = _scaled_xyw(xyw.index_select(1, nb_vert + base))
+        nb = nb - geo[:3] * nb[2]
+        opposite = a.gather(1, prv.index_select(0, k).expand(3, 1, -1))[:, 0]
+        silhouette = (slot < 0) | (torch.sign(_dot3(line, nb))
+                                   * torch.sign(_dot3(line, opposite)) > 0)
         crossed = on.any(0) & (t <= 1)  # before reaching n's centre
         stop = crossed & silhouette
         go = crossed & ~silhouette
-        arrive = go & (nb_face == goal.index_select(0, rows))
-        go &= ~arrive
-        if bool(stop.any()):
-            i = stop.nonzero().squeeze(1)
-            ki, k1 = k[i], (k[i] + 1) % 3
-            al, be = _at(alpha[:, i], ki), _at(beta[:, i], ki)
-            za, wa = _at(v[2, :, i], ki), _at(v[3, :, i], ki)
-            zb, wb = _at(v[2, :, i], k1), _at(v[3, :, i], k1)
-            near_ok = al * (za + wa) + be * (zb + wb) >= 0
-            far_ok = al * (wa - za) + be * (wb - zb) >= 0
-            nx, ny, _ = _line((_at(v[0, :, i], ki), _at(v[1, :, i], ki), wa),
-                              (_at(v[0, :, i], k1), _at(v[1, :, i], k1), wb))
-            done = rows[i]
-            hit[done] = True
-            edge[done] = ki
-            t_out[done] = t[i]
-            across = torch.where(axis[done] == 0, nx != 0, ny != 0)  # not parallel
-            blend[done] = near_ok & far_ok & across
-        reached[rows[arrive]] = True
-        rows = rows[go]
-        face[rows] = nb_face[go]
-        entry[rows] = nb_edge[go]
+        arrive = go & (nb_face == target)
+        stops.append(torch.stack([rows, cur, k])[:, stop])
+        reached.index_fill_(0, rows[arrive], True)
+        keep = (go & ~arrive).nonzero().squeeze(1)
+        state = torch.stack([rows, nb_face, base, nb_edge, target]).index_select(1, keep)
+        geo = geo.index_select(1, keep)
+    done, at, ki = torch.cat(stops, 1) if stops else torch.zeros(3, 0, dtype=o.dtype,
+                                                                 device=device)
+    if done.numel():  # the hits again, edge k only: t, the crossing and the depth range
+        x0, y0, dx, dy = (c.index_select(0, done) for c in (x0, y0, dx, dy))
+        corner = faces.index_select(0, at)  # (H, 3)
+        ends = corner.gather(1, torch.stack([ki, (ki + 1) % 3], 1)).T  # (2, H)
+        base = vert_base.index_select(0, done)
+        v = _scaled(clip_t.index_select(1, (ends + base).reshape(-1)).view(4, 2, -1))
+        a, b = _sheared(v[:, 0], x0, y0), _sheared(v[:, 1], x0, y0)
+        line = _line(a, b)
+        t, _ = _crossing_t(line, dx, dy)
+        xx, xy = t * dx, t * dy
+        al = _dot(line, _line((xx, xy, 1.0), b))
+        be = _dot(line, _line(a, (xx, xy, 1.0)))
+        (za, zb), (wa, wb) = v[2], v[3]
+        near_ok = al * (za + wa) + be * (zb + wb) >= 0
+        far_ok = al * (wa - za) + be * (wb - zb) >= 0
+        nx, ny, _ = _line((v[0, 0], v[1, 0], wa), (v[0, 1], v[1, 1], wb))
+        hit[done] = True
+        face[done] = at
+        edge[done] = ki
+        t_out[done] = t
+        across = torch.where(axis.index_select(0, done) == 0, nx != 0, ny != 0)  # not parallel
+        blend[done] = near_ok & far_ok & across
     return hit, reached, face, edge, t_out, blend
 
 
@@ -465,9 +497,9 @@ def _pick_pairs(clip_t, clip_shape, faces, topology, fid, depth_at, p, q, axis, 
     the crossing is nearer to n's centre).
 
     Pairs whose faces share an edge that is not a fold are internal (most pairs of a mesh
-    whose triangles are a few pixels wide) and skip the walks. The walk from p's face runs
-    first; the one from q's face only where the first did not reach q's face over internal
-    edges (then both pixels show one connected surface and nothing blends)."""
+    whose triangles are a few pixels wide) and skip the walks. The walk from q's face counts
+    only where the walk from p's face did not reach q's face over internal edges (then
+    both pixels show one connected surface and nothing blends)."""
     h, w = resolution
     item = floor_div_exact(p, h * w)
     vert_base = (item if clip_shape[0] > 1 else torch.zeros_like(item)) * clip_shape[1]
@@ -479,20 +511,21 @@ def _pick_pairs(clip_t, clip_shape, faces, topology, fid, depth_at, p, q, axis, 
     t = torch.zeros(2 * m, dtype=clip_t.dtype, device=p.device)
     # rows [0, m): walks from p towards q; rows [m, 2m): from q towards p
     o, n, goal = torch.cat([p, q]), torch.cat([q, p]), torch.cat([fq, fp])
-    reached = _internal(clip_t, faces, topology, vert_base, fp, fq)
-    todo = ((fp >= 0) & ~reached).nonzero().squeeze(1)
-    for side in (0, 1):
-        if side == 1:
-            todo = ((fq >= 0) & ~reached).nonzero().squeeze(1) + m
-        if todo.numel() == 0:
-            continue
-        r = _walk(clip_t, faces, topology, vert_base.index_select(0, todo % m),
+    internal = _internal(clip_t, faces, topology, vert_base, fp, fq)
+    # both sides walk at once (the walks are independent: one loop of steps instead of
+    # two); a walk from q counts only where the walk from p did not reach q's face
+    todo = (torch.cat([fp, fq]) >= 0) & ~torch.cat([internal, internal])
+    todo = todo.nonzero().squeeze(1)
+    if todo.numel():
+        pair = todo - m * (todo >= m)
+        r = _walk(clip_t, faces, topology, vert_base.index_select(0, pair),
                   face.index_select(0, todo), goal.index_select(0, todo),
                   o.index_select(0, todo), n.index_select(0, todo),
-                  axis.index_select(0, todo % m), resolution)
+                  axis.index_select(0, pair), resolution)
         hit[todo], arrived, face[todo], edge[todo], t[todo], blend[todo] = r
-        if side == 0:
-            reached[todo] = arrived
+        reached = torch.zeros(2 * m, dtype=torch.bool, device=p.device)
+        reached[todo] = arrived
+        hit[m:] &= ~reached[:m]
     hp, hq = hit[:m], hit[m:]
     use_p = hp & ~hq
     both = (hp & hq).nonzero().squeeze(1)
