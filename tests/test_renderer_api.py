@@ -199,3 +199,58 @@ def test_antialias_topology_is_kept_only_for_equal_faces():
     assert renderer._kept_topology[1] is not kept
     half = tr.RenderScene(pos, faces[: len(faces) // 2])  # other faces: a hole, new edges
     assert not torch.equal(same_as_fresh(half).alpha, first.alpha)
+
+
+@pytest.mark.parametrize("shading", ["pbr", "unlit"])
+def test_neutral_ao_and_emissive_are_not_computed(shading):
+    """Without occlusion textures and emissive factors the G-buffer skips ``ao`` and
+    ``emissive`` (the shading pass takes None as 1 and 0): the image equals the one with
+    both channels computed (requested), bit for bit; a material that emits, has an
+    occlusion texture, or takes gradients through its emissive factor gets them."""
+    mesh = _ico(2)
+    sun = tr.DirectionalLights(torch.tensor([[[0.3, -1.0, -0.4]]]), torch.ones(1, 1, 3),
+                               torch.full((1, 1), 2.0))
+    sh = torch.zeros(1, 9, 3)
+    sh[0, 0] = 0.3
+    lights = tr.Lights(directional=sun, ambient=sh)
+    env = tr.Environment(torch.rand(1, 3, 16, 32) * 2)
+    mats = [tr.Material(base_color_factor=(0.8, 0.4, 0.2, 1.0), roughness_factor=0.5,
+                        metallic_factor=0.3)]
+    scene = tr.RenderScene(mesh.positions, mesh.faces, materials=mats)
+    r = tr.Renderer(24, shading=shading)
+    plan = r.plan(scene, lights, env)
+    assert "ao" not in plan.channels and "emissive" not in plan.channels
+    with torch.no_grad():
+        out = r(scene, VIEW, PROJ, lights, env)
+        both = r(scene, VIEW, PROJ, lights, env, channels={"ao", "emissive"})
+    assert torch.equal(out.image, both.image) and torch.equal(out.alpha, both.alpha)
+    assert bool((both.gbuffer["ao"][both.alpha > 0] == 1).all())
+    glow = torch.zeros(3, requires_grad=True)
+    for mat, need in ((tr.Material(emissive_factor=torch.tensor([0.0, 0.5, 0.0])), "emissive"),
+                      (tr.Material(emissive_factor=glow), "emissive"),
+                      (tr.Material(occlusion_texture=torch.rand(1, 4, 4)), "ao")):
+        if shading == "unlit" and need == "ao":
+            continue  # unlit reads no ao
+        other = tr.RenderScene(mesh.positions, mesh.faces, materials=[mats[0], mat],
+                               face_material=torch.arange(len(mesh.faces)) % 2)
+        assert need in r.plan(other, lights, env).channels
+    out = r(tr.RenderScene(mesh.positions, mesh.faces, materials=[tr.Material(
+        emissive_factor=glow)]), VIEW, PROJ, lights, env)
+    (grad,) = torch.autograd.grad(out.image.sum(), glow)
+    assert bool((grad > 0).all())  # every covered pixel emits: d image / d glow = coverage
+
+
+def test_unlit_image_is_not_the_albedo_channel():
+    """Unlit without emission shades the albedo itself: the image is a new frame, so the
+    background and masking done in place on the image leave the albedo channel alone."""
+    mesh = _ico(1)
+    scene = tr.RenderScene(mesh.positions, mesh.faces,
+                           materials=[tr.Material(base_color_factor=(0.2, 0.4, 0.6, 1.0))])
+    with torch.no_grad():
+        out = tr.Renderer(16, shading="unlit", background=(0.5, 0.5, 0.5))(
+            scene, VIEW, PROJ, channels={"albedo"})
+    albedo, covered = out.gbuffer["albedo"], out.alpha > 0
+    assert bool(covered.any()) and bool((~covered).any())
+    assert bool((albedo * ~covered == 0).all())  # no background in the channel
+    assert torch.allclose(albedo[:, 2][covered[:, 0]], torch.tensor(0.6))
+    assert torch.allclose(out.image[:, 0][~covered[:, 0]], torch.tensor(0.5))

@@ -567,7 +567,8 @@ class Renderer(nn.Module):
                 "environment's specular where their rays miss, which holds the map without "
                 "its extracted sun; use sun_threshold=None with Renderer(ssr=...)")
         _check_label_fields(scene, requested)
-        channels = (set(requested) - {"amodal"}) | _SHADING_NEEDS[shading] | (
+        channels = (set(requested) - {"amodal"}) | (
+            _SHADING_NEEDS[shading] - _neutral_channels(scene.materials)) | (
             {"depth"} if ssao or ssr else set())
         if alpha != "none":
             channels.add("alpha")
@@ -1083,14 +1084,14 @@ class Renderer(nn.Module):
         if plan.shading == "headlight":
             to_eye = safe_normalize(eye[:, :, None, None] - gb.position, dim=1)
             return gb.albedo * (gb.normal * to_eye).sum(1, keepdim=True).clamp(min=0)
-        if plan.shading == "unlit":
-            return gb.albedo + gb.emissive
+        if plan.shading == "unlit":  # a new frame (the caller may change it in place)
+            return gb.albedo + gb.emissive if gb.emissive is not None else gb.albedo.clone()
         if plan.ssao:
             normal_view = torch.einsum("bij,bjhw->bihw", view[:, :3, :3].to(gb.normal.dtype),
                                        gb.normal)
             depth = torch.where(gb.mask > 0, gb.depth, torch.zeros_like(gb.depth))
-            gb = gb.replace(ao=gb.ao * self.ssao(depth, normal_view,
-                                                 projection=proj.to(depth.dtype)))
+            ao = self.ssao(depth, normal_view, projection=proj.to(depth.dtype))
+            gb = gb.replace(ao=gb.ao * ao if gb.ao is not None else ao)
         ibl = None
         if plan.ibl:
             def ibl(s: PixelSurface) -> torch.Tensor:  # the covered pixels only (the rest
@@ -1389,6 +1390,21 @@ def _check_group(name: str, value: object, kind: type) -> Any:
         raise TypeError(f"{name}: expected a torchraster.{kind.__name__} or None, got "
                         f"{type(value).__name__}")
     return value
+
+
+def _neutral_channels(materials: Sequence[Material | None]) -> set[str]:
+    """The shading channels that hold their neutral value on every material, which the
+    shading pass takes as None (the G-buffer skips them): ``"ao"`` (1) when no material
+    has an occlusion texture, ``"emissive"`` (0) when no material has a non-zero emissive
+    factor or one that takes gradients. An empty list is the glTF default material."""
+    mats = [m for m in materials if m is not None]
+    out = set()
+    if all(m.occlusion_texture is None for m in mats):
+        out.add("ao")
+    if all(not m.emissive_factor.requires_grad and not bool(m.emissive_factor.any())
+           for m in mats):
+        out.add("emissive")
+    return out
 
 
 def _amodal_objects(plan: RenderPlan, scene: RenderScene) -> torch.Tensor | None:
