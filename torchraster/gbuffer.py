@@ -331,23 +331,6 @@ def geometry_pass(
     if not channels - {"mask", "face_id", "object_coords"} - _IDENTITY_CHANNELS:
         return GBuffer(**out)
 
-    pos = interpolate_packed(positions, frags)[0] if "position" in need else None  # (3, N)
-    if "position" in channels:
-        out["position"] = to_image(pos, frags)
-    if "depth" in channels:
-        rows = view.to(dtype).expand(frags.face_id.shape[0], 4, 4)[:, 2].index_select(
-            0, frags.items)  # (N, 4) third row of each pixel's view matrix
-        z_view = (rows[:, :3] * pos.T).sum(-1) + rows[:, 3]
-        out["depth"] = to_image(-z_view[None], frags)
-        del rows, z_view
-    if "distance" in channels:  # |view-space point|: the ray length from the eye
-        rows = view.to(dtype).expand(frags.face_id.shape[0], 4, 4)[:, :3].index_select(
-            0, frags.items)  # (N, 3, 4)
-        p_view = (rows[:, :, :3] * pos.T[:, None]).sum(-1) + rows[:, :, 3]  # (N, 3)
-        out["distance"] = to_image(_norm_rows(p_view)[None], frags)
-        del rows, p_view
-    del pos  # memory: packed copies of channels never coexist with all their images
-
     uv = duv_dx = duv_dy = None
     if "uv" in need:
         if uvs is None:
@@ -430,6 +413,25 @@ def geometry_pass(
     normal_mapped = "normal" in channels and "tangent" in need and tangents is not None
     if not normal_mapped:
         uv = duv_dx = duv_dy = None
+
+    # geometry after the materials: the texture lookups' temporaries (the pass's peak)
+    # do not coexist with these images
+    pos = interpolate_packed(positions, frags)[0] if "position" in need else None  # (3, N)
+    if "position" in channels:
+        out["position"] = to_image(pos, frags)
+    if "depth" in channels:
+        rows = view.to(dtype).expand(frags.face_id.shape[0], 4, 4)[:, 2].index_select(
+            0, frags.items)  # (N, 4) third row of each pixel's view matrix
+        z_view = (rows[:, :3] * pos.T).sum(-1) + rows[:, 3]
+        out["depth"] = to_image(-z_view[None], frags)
+        del rows, z_view
+    if "distance" in channels:  # |view-space point|: the ray length from the eye
+        rows = view.to(dtype).expand(frags.face_id.shape[0], 4, 4)[:, :3].index_select(
+            0, frags.items)  # (N, 3, 4)
+        p_view = (rows[:, :, :3] * pos.T[:, None]).sum(-1) + rows[:, :, 3]  # (N, 3)
+        out["distance"] = to_image(_norm_rows(p_view)[None], frags)
+        del rows, p_view
+    del pos  # memory: packed copies of channels never coexist with all their images
 
     if "normal" in channels:
         if normals is None:
