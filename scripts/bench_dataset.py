@@ -128,16 +128,23 @@ def png_levels(cfg, repeats: int = 5) -> list[list[str]]:
     return rows
 
 
-def labelled_frame(cfg, frames: int) -> tuple[float, float]:
-    """(frames per second, seconds per frame) of the config's own channels, no files."""
+def labelled_frame(cfg, frames: int, threads: list[int], turns: int = 3
+                   ) -> dict[int, float]:
+    """Seconds per frame of the config's own channels, no files, per torch thread count:
+    the counts take turns over the same frames (``turns`` each; medians)."""
     render, views = _renderer(cfg, list(cfg.outputs.channels))
     views = views[:frames]
-    render(views[0].camera_config, views[0].folder, views[0].frame)  # warm up
-    t0 = time.perf_counter()
-    for v in views:
-        render(v.camera_config, v.folder, v.frame)
-    per = (time.perf_counter() - t0) / len(views)
-    return 1 / per, per
+    times: dict[int, list[float]] = {n: [] for n in threads}
+    for turn in range(turns + 1):
+        for n in threads:
+            torch.set_num_threads(n)
+            t0 = time.perf_counter()
+            for v in views:
+                render(v.camera_config, v.folder, v.frame)
+            if turn:  # the first turn warms up
+                times[n].append((time.perf_counter() - t0) / len(views))
+    torch.set_num_threads(max(threads))
+    return {n: statistics.median(t) for n, t in times.items()}
 
 
 RUN = """
@@ -188,7 +195,7 @@ def whole_run(ranks: int, scenes: int, src: str | None = None) -> dict:
         return result
 
 
-def blender_text(python: str | None, frames: int, fps: float) -> str:
+def blender_text(python: str | None, frames: int, fps: float, threads: int) -> str:
     """The Blender anchor: measured now with ``python`` (a Python with ``bpy``) on the same
     kind of scene (scripts/blender_movi.py), or the figures quoted by issue 20."""
     if python is None:
@@ -217,7 +224,8 @@ def blender_text(python: str | None, frames: int, fps: float) -> str:
             "HDR, orbiting camera, objects moving, 256²; passes Combined, Depth, Normal, "
             "IndexOB, Vector, Cryptomatte written as multilayer EXR; median over "
             f"{min(frames, 6)} frames after a warm-up frame). *Blender time / ours* = Blender's "
-            "time a frame over our in-process labelled frame above. Blender's IndexOB is one "
+            f"time a frame over our in-process labelled frame above ({threads} torch "
+            f"thread{'s' * (threads > 1)}, the faster row). Blender's IndexOB is one "
             "sample at the pixel centre; its Vector pass blends over samples at edges.\n\n"
             + markdown_table(["Blender " + got["bpy"], "per frame", "frames / s",
                               "Blender time / ours"], rows) + "\n")
@@ -257,13 +265,17 @@ def main() -> None:
         return
     h, w = cfg.render.size
     costs = label_costs(cfg, args.frames, args.turns)
-    fps, per = labelled_frame(cfg, args.frames)
+    cores = os.cpu_count() or 1
+    frame_s = labelled_frame(cfg, args.frames, sorted({1, cores}))
+    best = min(frame_s, key=frame_s.get)
+    fps = 1 / frame_s[best]
     maps = shadow_map_sizes(cfg, min(args.frames, 6))
     print(markdown_table(["sun map", "colour frame", "time / 512²", "PSNR (dB)"], maps))
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(markdown_table(["channel", "colour frame", "added by the label"], costs))
-    rows = [["in-process, labelled frame (no files)", "1", f"{fps:.2f}",
-             f"{per * 1e3:.0f} ms", f"{rss:.0f} MB (this process)"]]
+    rows = [[f"in-process, labelled frame (no files), {n} torch thread{'s' * (n > 1)}", "1",
+             f"{1 / sec:.2f}", f"{sec * 1e3:.0f} ms", f"{rss:.0f} MB (this process)"]
+            for n, sec in frame_s.items()]
     before = ""
     if not args.skip_runs:
         trees = [("", None)]
@@ -298,13 +310,16 @@ def main() -> None:
         "of the first 12, PSNR of the display image against a 4096² map): the config uses "
         "512²; the rows above it say what a larger map buys and what it costs.\n\n"
         + markdown_table(["sun map", "colour frame", "time / 512²", "PSNR (dB)"], maps)
-        + "\n\nWhole labelled frames. " + before + "One process uses torch's default threads "
-        "(one fewer while its writer thread encodes files, `distributed.writer_core`); two "
-        "ranks get one thread each. This machine's speed drifts by up to ~30 % within the hour "
-        "(the same labelled frame has timed 88 ms and 116 ms on one day): compare rows within "
-        "one run.\n\n"
+        + "\n\nWhole labelled frames. In-process: the config's frames with 1 and with "
+        f"{cores} torch threads in turns (3 turns after a warm-up, medians); at 256² most "
+        "operations are too small to gain from a second thread, whose parallel regions cost "
+        "more than they save. " + before + "Whole runs: one process uses torch's default "
+        "threads (one fewer while its writer thread encodes files, `distributed.writer_core`); "
+        "two ranks get one thread each. This machine's speed drifts by up to ~30 % within the "
+        "hour (the same labelled frame has timed 88 ms and 116 ms on one day): compare rows "
+        "within one run.\n\n"
         + markdown_table(["how", "processes", "frames / s", "per frame", "peak RSS"], rows)
-        + "\n\n" + blender_text(args.blender, args.frames, fps))
+        + "\n\n" + blender_text(args.blender, args.frames, fps, best))
     if not args.no_write:
         command = None
         if args.blender or args.before:  # without this machine's paths
