@@ -579,7 +579,9 @@ class RenderConfig(_Strict):
         default_of(RasterSettings, "alpha_layers"), description="depth layers for MASK / BLEND "
         "materials (what lies behind the nearest K is not seen through them)")
     antialias: bool = Field(default_of(RasterSettings, "antialias"), description="analytic "
-                            "antialiasing of silhouettes (gradients at edges)")
+                            "antialiasing of silhouette and occlusion edges (gradients at "
+                            "edges; the cheapest edge antialiasing, shadow edges as soft as "
+                            "the shadow filter)")
     fog: FogConfig | None = Field(None, description="volumetric height fog and light shafts")
     multiscatter: bool = Field(default_of(ShadingSettings, "multiscatter"), description="pbr: "
                                "multiple-scattering energy compensation of the specular and "

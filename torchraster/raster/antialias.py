@@ -472,16 +472,19 @@ def _internal(clip_t, faces, topology, vert_base, fp, fq):
     """(N,) bool: faces ``fp`` and ``fq`` share an edge that is not a fold (their other
     vertices lie on opposite sides of it, seen from the eye)."""
     slots = topology.index_select(0, fp.clamp_min(0))  # (N, 3)
-    across = (slots >= 0) & (floor_div_exact(slots.clamp_min(0), 3) == fq[:, None])
+    # edge k of fp is shared with fq when its slot across is 3 fq + l, l in {0, 1, 2}
+    rel = slots - 3 * fq[:, None]
+    across = (slots >= 0) & (rel >= 0) & (rel < 3)
     shared = across.any(1) & (fp >= 0)
     idx = shared.nonzero().squeeze(1)
     if idx.numel() == 0:
         return shared
-    k = torch.where(across[idx, 0], 0, torch.where(across[idx, 1], 1, 2))
-    corner = faces.index_select(0, fp[idx]).T  # (3, n)
-    slot = slots[idx].gather(1, k[:, None]).squeeze(1)
-    other = faces.view(-1).index_select(0, slot - slot % 3 + (slot % 3 + 2) % 3)
-    base = vert_base[idx]
+    across, rel = across.index_select(0, idx), rel.index_select(0, idx)
+    k = torch.where(across[:, 0], 0, torch.where(across[:, 1], 1, 2))
+    corner = faces.index_select(0, fp.index_select(0, idx)).T  # (3, n)
+    edge_q = rel.gather(1, k[:, None]).squeeze(1)  # the edge's index in fq
+    other = faces.view(-1).index_select(0, 3 * fq.index_select(0, idx) + (edge_q + 2) % 3)
+    base = vert_base.index_select(0, idx)
     ids = torch.stack([_at(corner, k), _at(corner, (k + 1) % 3), _at(corner, (k + 2) % 3),
                        other]) + base
     x, y, _, w = _scaled(clip_t.index_select(1, ids.reshape(-1)).view(4, 4, -1))
