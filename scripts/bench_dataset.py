@@ -159,7 +159,11 @@ s = render_dataset([DatasetConfig(Path(sys.argv[1]), "movi", cfg)], sys.argv[2],
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 import os
 if int(os.environ.get("RANK", "0")) == 0:
-    print(json.dumps({"written": s.written, "render_s": s.render_seconds, "peak_mb": peak}))
+    views = [json.loads(line) for f in Path(sys.argv[2]).glob("**/manifest*.jsonl")
+             for line in open(f)]
+    timings = [v["timings"] for v in views if "timings" in v]
+    print(json.dumps({"written": s.written, "render_s": s.render_seconds, "peak_mb": peak,
+                      "timings": timings}))
 else:
     print(json.dumps({"peak_mb": peak}), file=sys.stderr)
 """
@@ -193,6 +197,22 @@ def whole_run(ranks: int, scenes: int, src: str | None = None) -> dict:
                                        res.stderr.splitlines() if line.startswith('{"peak_mb"')]
         result["peak_mb"] = max(peaks)
         return result
+
+
+def spent_text(spent: dict[int, tuple[float, float, float]], in_process: float) -> str:
+    """Where a whole run's view time goes (the manifest's per-view timings, this tree)."""
+    if not spent:
+        return ""
+    rows = [[str(ranks), f"{first:.2f} s", f"{render * 1e3:.0f} ms", f"{write * 1e3:.0f} ms"]
+            for ranks, (first, render, write) in sorted(spent.items())]
+    return ("\n\nWhere a whole run's time goes (this tree; the manifest's per-view timings): "
+            "the slowest view of a run is a process's first, which builds the environment's "
+            "prefiltered specular chain (~1.4 s for this map, once per map per process: a "
+            "content cache); a steady view renders in the main thread while the previous "
+            "view's files are written by the writer thread, which takes one of the two cores "
+            f"(the same view in-process, 1 thread, no files: {in_process * 1e3:.0f} ms).\n\n"
+            + markdown_table(["processes", "slowest view (first)", "view render (median)",
+                              "view files (median, writer thread)"], rows))
 
 
 def blender_text(python: str | None, frames: int, fps: float, threads: int) -> str:
@@ -277,6 +297,7 @@ def main() -> None:
              f"{1 / sec:.2f}", f"{sec * 1e3:.0f} ms", f"{rss:.0f} MB (this process)"]
             for n, sec in frame_s.items()]
     before = ""
+    spent: dict[int, tuple[float, float, float]] = {}  # ranks -> first, steady render, write
     if not args.skip_runs:
         trees = [("", None)]
         if args.before:
@@ -291,6 +312,12 @@ def main() -> None:
                 for label, src in trees:
                     found[label].append(whole_run(ranks, args.scenes, src))
             for label, _ in trees:
+                if label == trees[-1][0]:  # this tree: where a view's time goes
+                    t = [v for r in found[label] for v in r.get("timings", [])]
+                    if t:
+                        spent[ranks] = (max(v["render_s"] for v in t),
+                                        statistics.median(v["render_s"] for v in t),
+                                        statistics.median(v["write_s"] for v in t))
                 per = statistics.median(r["render_s"] / r["written"] for r in found[label])
                 peak = max(r["peak_mb"] for r in found[label])
                 rows.append([f"torchraster render, {args.scenes} scene(s), files + manifest + "
@@ -319,7 +346,8 @@ def main() -> None:
         "hour (the same labelled frame has timed 88 ms and 116 ms on one day): compare rows "
         "within one run.\n\n"
         + markdown_table(["how", "processes", "frames / s", "per frame", "peak RSS"], rows)
-        + "\n\n" + blender_text(args.blender, args.frames, fps, best))
+        + spent_text(spent, frame_s[1]) + "\n\n" + blender_text(args.blender, args.frames, fps,
+                                                                 best))
     if not args.no_write:
         command = None
         if args.blender or args.before:  # without this machine's paths
