@@ -50,9 +50,9 @@ zero-area triangle), rendered forward and backward through ``tr.Renderer``:
   of float16 renders are counted apart, not as problems: near the other camera's plane the
   flow's gradient exceeds float16's range in rasterize's float16 backward (a known limit).
 - half: the stage in float16 / bfloat16 with float textures (up to 300 texels), a sun
-  (sometimes straight down) and a spot light casting shadows with every filter, every
-  texture filter, antialiasing on or off, else edge antialiasing (``edge_supersample``
-  1 to 3).
+  (sometimes straight down) and a spot light casting shadows with every filter (PCF and
+  PCSS with a pixel-footprint radius of 0, 0.56 or 8 pixels at random), every texture
+  filter, antialiasing on or off, else edge antialiasing (``edge_supersample`` 1 to 3).
 - far: the stage, its cameras (batch 1-2) and its lights (a sun with 1-3 cascades, a spot
   and a point light, shadows of a random filter) moved together by 0 to 1e7 m in a random
   direction (the hard case of camera-relative rendering), float64 world positions (float32
@@ -718,8 +718,10 @@ def scene_half(gen: torch.Generator, c: Counter) -> None:
                            torch.tensor([0.0, 0.3, 0.0])).to(dtype)
     res = (_randint(gen, 8, 40), _randint(gen, 8, 40))
     proj = tr.camera.perspective(_rand(gen, 20.0, 90.0), res[1] / res[0], 0.01).to(dtype)
-    settings = tr.shading.shadows.ShadowSettings(
-        map_size=_pick(gen, (32, 128)), filter=_pick(gen, tr.shading.shadows.FILTERS))
+    filt = _pick(gen, tr.shading.shadows.FILTERS)
+    settings = tr.shading.shadows.ShadowSettings(  # pixel_radius: pcf / pcss only
+        map_size=_pick(gen, (32, 128)), filter=filt,
+        pixel_radius=_pick(gen, (0.0, 0.56, 8.0)) if filt in ("pcf", "pcss") else 0.0)
     antialias = _chance(gen, 0.5)
     raster = tr.RasterSettings(antialias=antialias,
                                edge_supersample=1 if antialias else _pick(gen, (1, 2, 3)))
@@ -884,9 +886,12 @@ def _far_lights(gen: torch.Generator, offset: torch.Tensor, leaves: list[torch.T
     d = torch.float64
     filt = _pick(gen, tr.shading.shadows.FILTERS)
     size = _pick(gen, (32, 128))
+    footprint = _pick(gen, (0.0, 0.56)) if filt in ("pcf", "pcss") else 0.0
     sun_s = tr.shading.shadows.ShadowSettings(map_size=size, filter=filt,
-                                              cascades=_randint(gen, 1, 3))
-    local_s = tr.shading.shadows.ShadowSettings(map_size=size, filter=filt)
+                                              cascades=_randint(gen, 1, 3),
+                                              pixel_radius=footprint)
+    local_s = tr.shading.shadows.ShadowSettings(map_size=size, filter=filt,
+                                                pixel_radius=footprint)
     sun = torch.tensor([[[_rand(gen, -0.6, 0.6), -1.0, _rand(gen, -0.6, 0.6)]]], dtype=d)
     spot = torch.tensor([_rand(gen, -1.5, 1.5), 2.5, _rand(gen, -1.5, 1.5)], dtype=d)
     point = torch.tensor([_rand(gen, -1.5, 1.5), _rand(gen, 0.3, 2.0), _rand(gen, -1.5, 1.5)],

@@ -787,10 +787,12 @@ class Renderer(nn.Module):
 
         hooks: list = []  # the shadow hook of each radiance_of call (edge antialiasing)
 
-        def radiance_of(gb: GBuffer, face_id: torch.Tensor,
-                        glow: torch.Tensor | None = None) -> torch.Tensor:
+        def radiance_of(gb: GBuffer, face_id: torch.Tensor, glow: torch.Tensor | None = None,
+                        rows: int = plan.resolution[0]) -> torch.Tensor:
+            """Radiance of the surfaces ``gb``; ``rows``: pixel rows of the grid they sample
+            (the shadow filter's pixel footprint)."""
             hook = None if groups is None else self._shadow_hook(groups, lights_b, scene, gb,
-                                                                 face_id, view, b)
+                                                                 face_id, view, b, proj, rows)
             hooks.append(hook)
             if plan.fog and lights is not None and self.fog.light_transmittance:
                 hook = surface_light_hook(self.fog, lights, gb.position, gb.mask, hook)
@@ -1055,9 +1057,14 @@ class Renderer(nn.Module):
         return groups, lights
 
     def _shadow_hook(self, groups: list[ShadowMaps], lights: Lights, scene: RenderScene,
-                     gb: GBuffer, face_id: torch.Tensor, view: torch.Tensor, b: int):
-        """The ``shade`` visibility hook of the surfaces in ``gb`` (face ids ``face_id``)."""
+                     gb: GBuffer, face_id: torch.Tensor, view: torch.Tensor, b: int,
+                     proj: torch.Tensor, rows: int):
+        """The ``shade`` visibility hook of the surfaces in ``gb`` (face ids ``face_id``),
+        seen in a grid of ``rows`` pixel rows (``ShadowSettings.pixel_radius``)."""
         receive = gb.mask > 0
+        pixel = None
+        if any(g.settings.pixel_radius > 0 for g in groups):
+            pixel = pixel_size(gb.position, view, proj, rows)
         if scene.receive_shadows is not None:
             flags = scene.receive_shadows.to(face_id.device)
             receive = receive & flags[face_id.clamp_min(0)].unsqueeze(1) & (
@@ -1065,7 +1072,7 @@ class Renderer(nn.Module):
         full: dict[str, torch.Tensor] = {}
         for g in groups:
             vis = shadow_visibility(g, gb.position, safe_normalize(gb.normal, dim=1), receive,
-                                    view)
+                                    view, pixel)
             count = getattr(lights, g.kind).count
             if g.kind not in full:
                 full[g.kind] = vis.new_ones(b, count, 1, *vis.shape[-2:])
@@ -1157,7 +1164,7 @@ class Renderer(nn.Module):
                            face_material=scene.face_material, materials=scene.materials,
                            texture_filter=self.texture_settings.filter, mip_cache=self.mip_cache,
                            max_anisotropy=self.texture_settings.max_anisotropy)
-        radiance = radiance_of(gb, packed.frags.face_id)
+        radiance = radiance_of(gb, packed.frags.face_id, rows=plan.resolution[0] * k)
         if plan.background == "environment":
             rays = edge_aa.rays_at(view, proj, packed.ndc.to(radiance.dtype))
             back = environment.background(rays)
@@ -1390,6 +1397,28 @@ def _check_group(name: str, value: object, kind: type) -> Any:
         raise TypeError(f"{name}: expected a torchraster.{kind.__name__} or None, got "
                         f"{type(value).__name__}")
     return value
+
+
+def pixel_size(position: torch.Tensor, view: torch.Tensor, proj: torch.Tensor, rows: int
+               ) -> torch.Tensor:
+    """World size of one pixel (its height) at each surface point, for a grid of ``rows``
+    pixel rows: ``2 depth / (P[1, 1] rows)`` for a perspective projection (``depth``
+    along the view axis), ``2 / (P[1, 1] rows)`` for an orthographic one. No gradient.
+
+    Args:
+        position: ``(B, 3, H, W)`` world positions; view, proj: ``(B, 4, 4)``.
+
+    Returns:
+        ``(B, 1, H, W)``.
+    """
+    with torch.no_grad():
+        dt = position.dtype
+        v, pr = view.to(dt), proj.to(dt)
+        depth = -(torch.einsum("bc,bchw->bhw", v[:, 2, :3], position)
+                  + v[:, 2, 3, None, None])[:, None]
+        scale = (2.0 / (pr[:, 1, 1] * rows)).view(-1, 1, 1, 1)
+        persp = (pr[:, 3, 3] == 0).view(-1, 1, 1, 1)
+        return scale * torch.where(persp, depth.abs(), torch.ones_like(depth))
 
 
 def _neutral_channels(materials: Sequence[Material | None]) -> set[str]:

@@ -662,8 +662,8 @@ def _shadow_bounds(name: str) -> Any:
 #: Shadow fields that only some filters read.
 _FILTER_USES = {
     "hard": set(),
-    "pcf": {"pcf_radius", "pcf_taps", "pcf_pattern"},
-    "pcss": {"pcf_taps", "pcf_pattern", "light_size", "max_penumbra"},
+    "pcf": {"pcf_radius", "pcf_taps", "pcf_pattern", "pixel_radius"},
+    "pcss": {"pcf_taps", "pcf_pattern", "light_size", "max_penumbra", "pixel_radius"},
     "vsm": {"vsm_blur", "vsm_bleed", "vsm_min_variance"},
 }
 _FILTER_FIELDS = set().union(*_FILTER_USES.values())
@@ -711,6 +711,10 @@ class ShadowConfig(_Strict):
     vsm_bleed: Annotated[float, _shadow_bounds("vsm_bleed")] = _shadow_default("vsm_bleed")
     vsm_min_variance: Annotated[float, _shadow_bounds("vsm_min_variance")] = (
         _shadow_default("vsm_min_variance"))
+    pixel_radius: Annotated[float, _shadow_bounds("pixel_radius")] = Field(
+        _shadow_default("pixel_radius"), description="pcf / pcss: the filter also spans this "
+        "many pixels of the frame at each receiver (0.56: shadow edges about as soft as "
+        "averaging over the pixel; 0 = off)")
 
     @model_validator(mode="after")
     def _used_by_filter(self) -> ShadowConfig:

@@ -119,7 +119,7 @@ SHADOW_BOUNDS: dict[str, tuple[float, float]] = {
     "slope_bias": (0, 1e3), "normal_bias": (0, 1e3), "intensity": (0, 1),
     "split_lambda": (0, 1), "cascade_blend": (0, 0.5), "light_size": (0, 1e6),
     "max_penumbra": (0.5, 64), "vsm_blur": (0, 64), "vsm_bleed": (0, 0.99),
-    "vsm_min_variance": (0, 1),
+    "vsm_min_variance": (0, 1), "pixel_radius": (0, 8),
 }
 
 
@@ -148,6 +148,12 @@ class ShadowSettings:
         vsm_blur: standard deviation (texels) of the Gaussian blur of VSM moments.
         vsm_bleed: VSM light-bleeding reduction (0 = none; cut Chebyshev's bound below it).
         vsm_min_variance: VSM variance floor, relative to the squared depth range.
+        pixel_radius: PCF / PCSS: the filter also spans this many pixels of the frame at
+            each receiver, its radius ``sqrt(r^2 + (pixel_radius * pixel / texel)^2)``
+            texels (at most ``max_penumbra``): 0.56, a disc of one pixel's area, makes
+            shadow edges about as soft as averaging over the pixel (what supersampling
+            does), for no more taps. 0 = off. Needs the receivers' pixel size
+            (``shadow_visibility(pixel_size=...)``; the Renderer passes it).
     """
 
     map_size: int = 1024
@@ -168,6 +174,7 @@ class ShadowSettings:
     vsm_blur: float = 1.5
     vsm_bleed: float = 0.2
     vsm_min_variance: float = 1e-7
+    pixel_radius: float = 0.0
 
     def __post_init__(self) -> None:
         def bad(name: str, expected: str) -> None:
@@ -186,6 +193,9 @@ class ShadowSettings:
             bad("pcf_pattern", f"one of {PATTERNS}")
         if self.max_distance is not None:
             check_float("ShadowSettings.max_distance", self.max_distance, 0.0, lo_open=True)
+        if self.pixel_radius > 0 and self.filter in ("hard", "vsm"):
+            raise NotImplementedError(f"ShadowSettings.pixel_radius: not implemented for "
+                                      f"filter {self.filter!r} (pcf and pcss only)")
 
 
 @dataclass
@@ -1549,9 +1559,11 @@ def _bilinear(maps: torch.Tensor, sel: torch.Tensor, tx: torch.Tensor, ty: torch
     return out
 
 
-def _visibility_of_view(g: ShadowMaps, p, n, item, view_idx, padded=None) -> torch.Tensor:
+def _visibility_of_view(g: ShadowMaps, p, n, item, view_idx, padded=None, pixel=None
+                        ) -> torch.Tensor:
     """``(P, Ls)`` visibility of receivers in the views ``view_idx`` ``(P, Ls)``;
-    ``padded``: :func:`_pad_maps` of ``g.depth`` (PCF / PCSS, small maps) or None."""
+    ``padded``: :func:`_pad_maps` of ``g.depth`` (PCF / PCSS, small maps) or None;
+    ``pixel``: ``(P,)`` world size of a frame pixel at each receiver (``pixel_radius``)."""
     s = g.settings
     size = s.map_size
     tx, ty, z_ref, world_texel, sel, valid, ramp = _project(g, p, n, item, view_idx)
@@ -1579,6 +1591,11 @@ def _visibility_of_view(g: ShadowMaps, p, n, item, view_idx, padded=None) -> tor
     radius = torch.full_like(tx, float(s.pcf_radius))
     if s.filter == "pcss":
         radius = _pcss_radius(g, maps, sel, tx, ty, z_ref, world_texel, taps, ramp)
+    if pixel is not None and s.pixel_radius > 0:  # the pixel's footprint, in texels (a
+        # filter width like a texture's LOD: no gradient)
+        grow = (s.pixel_radius * pixel.detach()[:, None] / world_texel.detach()).to(radius)
+        radius = torch.sqrt(radius * radius + grow * grow).clamp_max(
+            max(s.max_penumbra, s.pcf_radius))
     # each tap against the receiver plane's depth there (+1 texel: the bilinear footprint);
     # (T, P, Ls) in memory, seen as (P, Ls, T): broadcasting the per-receiver values over
     # rows is ~4x faster than over a last dimension of T
@@ -1636,8 +1653,8 @@ def _pcss_radius(g: ShadowMaps, maps, sel, tx, ty, z_ref, world_texel, taps, ram
 
 
 def shadow_visibility(g: ShadowMaps, position: torch.Tensor, normal: torch.Tensor,
-                      receive: torch.Tensor, camera_view: torch.Tensor | None = None
-                      ) -> torch.Tensor:
+                      receive: torch.Tensor, camera_view: torch.Tensor | None = None,
+                      pixel_size: torch.Tensor | None = None) -> torch.Tensor:
     """The fraction of each light of a group that reaches each pixel.
 
     Args:
@@ -1646,6 +1663,8 @@ def shadow_visibility(g: ShadowMaps, position: torch.Tensor, normal: torch.Tenso
         receive: ``(B, 1, H, W)`` bool: pixels that receive shadows (covered, and their
             face's ``receive_shadows``).
         camera_view: ``(B, 4, 4)`` world -> view of the camera (cascade selection).
+        pixel_size: ``(B, 1, H, W)`` world size of one frame pixel at each receiver, for
+            ``settings.pixel_radius``; None: the filter ignores it.
 
     Returns:
         ``(B, Ls, 1, H, W)`` visibility in [0, 1] (1 where not receiving), already scaled
@@ -1664,6 +1683,10 @@ def shadow_visibility(g: ShadowMaps, position: torch.Tensor, normal: torch.Tenso
     # them was ~8 ms per 50k receivers, most of a 256² frame's lookup)
     p_all = position.transpose(0, 1).reshape(3, -1)
     n_all = normal.transpose(0, 1).reshape(3, -1)
+    px_all = None
+    if pixel_size is not None and g.settings.pixel_radius > 0:
+        check_tensor("pixel_size", pixel_size, (b, 1, h, w), floating=True)
+        px_all = pixel_size.reshape(-1).to(dt)
     taps = 1 if g.settings.filter in ("hard", "vsm") else g.settings.pcf_taps * (
         2 if g.settings.filter == "pcss" else 1)
     per = max(1, TAP_CHUNK_ELEMENTS // (n_l * taps * 4))
@@ -1680,13 +1703,14 @@ def shadow_visibility(g: ShadowMaps, position: torch.Tensor, normal: torch.Tenso
             cv = camera_view.to(p.dtype).index_select(0, item)
             cam_depth = -((cv[:, 2, :3] * p).sum(-1) + cv[:, 2, 3]).detach()
         view_idx, t = _select_view(g, p, item, cam_depth)
-        vis = _visibility_of_view(g, p, n, item, view_idx, padded)
+        px = None if px_all is None else px_all.index_select(0, idx)
+        vis = _visibility_of_view(g, p, n, item, view_idx, padded, px)
         if g.layout == "cascades" and bool((t > 0).any()):
             nxt = torch.where(t > 0, (view_idx + 1).clamp_max(g.view.shape[2] - 1), view_idx)
             if not bool(g.rendered.all()):
                 nxt = torch.where(g.rendered.index_select(0, nxt.clamp_min(0).flatten()).view_as(
                     nxt), nxt, view_idx)
-            vis = torch.lerp(vis, _visibility_of_view(g, p, n, item, nxt, padded), t)
+            vis = torch.lerp(vis, _visibility_of_view(g, p, n, item, nxt, padded, px), t)
         parts.append(vis)
     vis = torch.cat(parts)
     vis = 1 - g.settings.intensity * (1 - vis)
