@@ -1463,4 +1463,4 @@ def _cull_mask(plan: RenderPlan, scene: RenderScene) -> bool | torch.Tensor:
 
 
 __all__ = ["CHANNELS", "NotImplementedWarning", "RenderOutput", "RenderPlan", "RenderScene",
-           "Renderer", "camera_position", "view_rays"]
+           "Renderer", "camera_position", "pixel_size", "view_rays"]
