@@ -128,3 +128,15 @@ render: {{resolution: [16, 16]}}
     path.write_text(text.format(f="hard"))
     with pytest.raises(Exception, match="pixel_radius"):
         tr.load_config(path)
+
+
+def test_pixel_radius_with_fog_light_shafts():
+    """Fog samples look the maps up with one comparison (no footprint, no bias): a light
+    with pixel_radius still marches its shafts (it raised NotImplementedError for the
+    'hard' lookup the fog uses)."""
+    from torchraster.shading.volumetric import Fog
+
+    scene, view, proj, lights = _scene(0.56)
+    with torch.no_grad():
+        out = tr.Renderer(24, fog=Fog(density=0.3, steps=8))(scene, view, proj, lights)
+    assert bool(torch.isfinite(out.image).all())

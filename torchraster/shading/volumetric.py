@@ -482,13 +482,13 @@ def interleaved_gradient_noise(h: int, w: int, seed: int = 0, *, dtype: torch.dt
 
 
 def _volume_maps(g: ShadowMaps) -> ShadowMaps:
-    """The same maps looked up for fog samples: one comparison (VSM: its moments) and no
+    """The same maps looked up for fog samples: one comparison (VSM: its moments), no
     bias (a fog sample is no surface that could shadow itself; a bias would light the fog
-    just under an occluder)."""
+    just under an occluder) and no pixel footprint."""
     s = g.settings
     filt = "vsm" if s.filter == "vsm" else "hard"
     return dataclasses.replace(g, settings=dataclasses.replace(
-        s, filter=filt, bias=0.0, slope_bias=0.0, normal_bias=0.0))
+        s, filter=filt, bias=0.0, slope_bias=0.0, normal_bias=0.0, pixel_radius=0.0))
 
 
 def marched_lights(lights: Lights | None, shadow_maps: Sequence[ShadowMaps] = ()
