@@ -63,3 +63,25 @@ def test_no_grad_render_equals_the_autograd_render(case):
     assert torch.equal(quick.alpha, graph.alpha.detach())
     covered = quick.alpha > 0
     assert covered.any() and (~covered).any()  # both the surface and the background
+
+
+def test_textured_no_grad_renders_keep_their_texture_lod():
+    """Without autograd the renderer drops the fragments' barycentric derivatives once the
+    G-buffer is made (memory): trilinear texturing still sees them, in every call, and the
+    image is the autograd render's."""
+    mesh = tr.load_spot()
+    scene = tr.RenderScene.from_mesh(mesh)
+    view = tr.camera.orbit(torch.tensor([30.0]), torch.tensor([15.0]), torch.tensor([2.4]))
+    proj = tr.camera.perspective(45.0, 1.0, 0.1)
+    lights = tr.Lights(directional=rt.make_lights("directional").directional)
+    renderer = tr.Renderer(48)
+    with torch.no_grad():
+        first = renderer(scene, view, proj, lights).image
+        second = renderer(scene, view, proj, lights).image
+    scene.positions = scene.positions.clone().requires_grad_(True)
+    full = renderer(scene, view, proj, lights).image
+    bilinear = tr.Renderer(48, textures=tr.TextureSettings(filter="bilinear"))
+    with torch.no_grad():
+        flat = bilinear(scene, view, proj, lights).image
+    assert torch.equal(first, second) and torch.equal(first, full.detach())
+    assert not torch.equal(first, flat)  # the LOD acts on this view

@@ -778,6 +778,9 @@ class Renderer(nn.Module):
         if plan.motion:  # per layer: the alpha modes then select them like the other channels
             gbs = _motion_channels(plan, scene, layers, gbs, frames, face_ranges, b,
                                    self._raster_memo)
+        if not torch.is_grad_enabled() and not self._raster_memo.holds(frags):
+            for f in layers:  # memory: the texture LOD's derivatives are used up
+                f.bary_dx_packed = f.bary_dy_packed = None
         eye = camera_position(view.to(positions.dtype))
         groups = None
         if plan.shadow_lights:
@@ -1383,6 +1386,10 @@ class _RasterMemo:
                 self._kept.pop(next(iter(self._kept)))  # the oldest
             self._kept[key] = (faces, faces._version, cull, face_ranges, objects, frags)
         return frags
+
+    def holds(self, frags: Fragments) -> bool:
+        """Whether ``frags`` is one of the kept rasters (a later call may reuse it)."""
+        return any(kept[-1] is frags for kept in self._kept.values())
 
     def __deepcopy__(self, memo: dict) -> _RasterMemo:
         return _RasterMemo()  # a copied renderer starts empty
