@@ -350,8 +350,11 @@ def _prefilter_quadrature(
 ) -> torch.Tensor:
     """Brute-force convolution ``sum_j L_j D(n.h_j) (n.l_j)^+ dw_j / sum_j D (n.l)^+ dw_j``
     over every texel of ``src`` ``(B, 3, hs, ws)`` for the texel centres of an output map
-    ``(B, 3, height, 2 height)``. With n = v: ``n.h = sqrt((1 + n.l) / 2)``."""
+    ``(B, 3, height, 2 height)``. With n = v: ``n.h = sqrt((1 + n.l) / 2)``. On the
+    source's own grid the sum runs through :func:`_prefilter_rows` (the same weights)."""
     b, _, hs, ws = src.shape
+    if height == hs and ws == 2 * hs:
+        return _prefilter_rows(src, roughness)
     ds = latlong_directions(hs, ws, device=src.device, dtype=src.dtype).reshape(3, -1)
     dw = latlong_solid_angles(hs, ws, device=src.device, dtype=src.dtype).expand(hs, ws)
     dw = dw.reshape(-1)
@@ -366,6 +369,31 @@ def _prefilter_quadrature(
         w = d_ggx(n_dot_h, roughness) * c.clamp_min(0.0) * dw
         outs.append(torch.einsum("ns,bcs->bcn", w, lsrc) / w.sum(1))
     return torch.cat(outs, -1).reshape(b, 3, height, 2 * height)
+
+
+def _prefilter_rows(src: torch.Tensor, roughness: float) -> torch.Tensor:
+    """:func:`_prefilter_quadrature` onto the grid of ``src`` ``(B, 3, h, 2h)`` itself.
+
+    Between texel centres of the same lat-long grid, ``n.l = cos t_o cos t_s + sin t_o
+    sin t_s cos(p_o - p_s)`` depends on the two rows and the azimuth difference only, and
+    that difference is a whole number of columns: each output row is a sum over source
+    rows of circular correlations along the row, done with real FFTs (the kernel is even
+    in the azimuth, so its transform is real). The weights are the brute force's; h x h x
+    2h of them instead of (2 h^2)^2."""
+    b, _, h, w = src.shape
+    dt, dev = src.dtype, src.device
+    theta = (torch.arange(h, device=dev, dtype=dt) + 0.5) * (math.pi / h)
+    dphi = torch.arange(w, device=dev, dtype=dt) * (2 * math.pi / w)  # column offsets
+    ct, st = torch.cos(theta), torch.sin(theta)
+    c = (ct[:, None, None] * ct[None, :, None]
+         + (st[:, None] * st[None, :])[..., None] * torch.cos(dphi))  # (h_o, h_s, w) = n.l
+    n_dot_h = torch.sqrt(((1.0 + c) * 0.5).clamp_min(0.0))
+    dw = latlong_solid_angles(h, w, device=dev, dtype=dt)  # (h, 1) per source row
+    kernel = d_ggx(n_dot_h, roughness) * c.clamp_min(0.0) * dw.view(1, h, 1)
+    spec = torch.fft.rfft(src, dim=-1)  # (B, 3, h_s, w/2 + 1)
+    ker = torch.fft.rfft(kernel, dim=-1).real.to(spec.dtype)  # even kernel: real transform
+    out = torch.fft.irfft(torch.einsum("osf,bcsf->bcof", ker, spec), n=w, dim=-1)
+    return out / kernel.sum((1, 2)).view(1, 1, h, 1)
 
 
 def _prefilter_importance(
@@ -437,7 +465,9 @@ def prefilter_specular(
       width spans ``texels_per_lobe`` texels (box-downsampled, or bilinearly upsampled when
       the source is coarser), and every output texel sums over every source texel (two
       matrix products). Used when ``out_texels * src_texels <= quadrature_budget`` -- the
-      rough levels, where the lobe is wide and the sums are small.
+      rough levels, where the lobe is wide and the sums are small -- and whenever the
+      level has the resampled source's own grid (``h`` = the lobe's rows: the sums are
+      then circular correlations along the rows, :func:`_prefilter_rows`, at any size).
     * GGX importance sampling with ``samples`` Hammersley samples, each read from the
       source's box mip pyramid at lod ``0.5 log2(Omega_s / Omega_p) + FIS_LOD_BIAS``
       (filtered importance sampling) -- the sharp levels, where few texels matter.
@@ -473,7 +503,7 @@ def prefilter_specular(
         need = max(MIN_LEVEL_HEIGHT, math.ceil(texels_per_lobe * math.pi / _lobe_width(rough)))
         h = int(min(size, he, need))  # never finer than the source
         hs = int(need)
-        if 2 * h * h * 2 * hs * hs <= quadrature_budget:
+        if h == hs or 2 * h * h * 2 * hs * hs <= quadrature_budget:  # (same grid: FFT)
             # quadrature on the source resampled to `need` rows: box-downsampled, or
             # bilinearly upsampled (the same reconstruction the lookups use)
             if hs < he:
