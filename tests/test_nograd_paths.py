@@ -85,3 +85,28 @@ def test_textured_no_grad_renders_keep_their_texture_lod():
         flat = bilinear(scene, view, proj, lights).image
     assert torch.equal(first, second) and torch.equal(first, full.detach())
     assert not torch.equal(first, flat)  # the LOD acts on this view
+
+
+def test_kept_rasters_keep_their_texture_lod():
+    """A frame rasterized as another frame's neighbour (flow validity) is kept for when that
+    frame renders; its derivatives must survive its own render too, so rendering the same
+    frame again (a view re-rendered) gives the same trilinear-textured image."""
+    from torchraster.motion import OtherFrame
+
+    mesh = tr.load_spot()
+    proj = tr.camera.perspective(45.0, 1.0, 0.1)
+    views = [tr.camera.orbit(torch.tensor([a]), torch.tensor([15.0]), torch.tensor([2.4]))
+             for a in (20.0, 26.0, 32.0)]
+    lights = tr.Lights(directional=rt.make_lights("directional").directional)
+    scene = tr.RenderScene.from_mesh(mesh)
+    renderer = tr.Renderer(48)
+
+    def frame(i: int):
+        return renderer(scene, views[i], proj, lights, channels={"flow_forward_valid"},
+                        next_frame=OtherFrame(mesh.positions, views[i + 1], proj)).image
+
+    with torch.no_grad():
+        frame(0)  # rasterizes frame 1 as its neighbour and keeps it
+        once, again = frame(1), frame(1)  # frame 1's raster comes from the memo both times
+        fresh = tr.Renderer(48)(scene, views[1], proj, lights).image
+    assert torch.equal(once, fresh) and torch.equal(again, fresh)
