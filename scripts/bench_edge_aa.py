@@ -35,8 +35,9 @@ from torchraster.post.tonemap import encode_srgb
 from torchraster.testing import raytrace as rt
 
 IMAGES = Path(__file__).resolve().parent.parent / "docs" / "images"
-#: The setting whose shadow filters also span the pixel's footprint (pixel_radius 0.56).
-FOOTPRINT = "antialias + shadows pixel_radius 0.56"
+#: Settings whose shadow filters also span the pixel's footprint: label -> pixel_radius
+#: (0.56: a disc of the pixel's area).
+FOOTPRINT = {f"antialias + shadows pixel_radius {r}": r for r in (0.3, 0.56, 1.0)}
 RES = 256
 REFERENCE = 8
 SETTINGS = [("1x", tr.RasterSettings()),
@@ -44,7 +45,7 @@ SETTINGS = [("1x", tr.RasterSettings()),
             *[(f"edge_supersample {k}", tr.RasterSettings(edge_supersample=k))
               for k in (2, 3, 4)],
             ("antialias (analytic)", tr.RasterSettings(antialias=True)),
-            (FOOTPRINT, tr.RasterSettings(antialias=True))]
+            *[(label, tr.RasterSettings(antialias=True)) for label in FOOTPRINT]]
 
 
 def _ambient(level: float) -> torch.Tensor:
@@ -117,7 +118,7 @@ def with_pixel_radius(lights: tr.Lights, radius: float) -> tr.Lights:
 
 def measure(name: str, scene, view, proj, lights, repeats: int) -> list[list[object]]:
     renderers = {label: tr.Renderer(RES, raster=raster) for label, raster in SETTINGS}
-    lit = {label: with_pixel_radius(lights, 0.56) if label == FOOTPRINT else lights
+    lit = {label: with_pixel_radius(lights, FOOTPRINT[label]) if label in FOOTPRINT else lights
            for label in renderers}
     with torch.no_grad():
         ref = tr.Renderer(RES, raster=tr.RasterSettings(supersample=REFERENCE))(
