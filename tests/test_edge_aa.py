@@ -8,6 +8,8 @@ differences (float64 gradients through the packed sub-samples).
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -38,11 +40,18 @@ def _lights(kinds=("directional", "point"), dtype=torch.float32):
     return tr.Lights(ambient=amb, **parts).to(dtype=dtype)
 
 
-@pytest.mark.parametrize("k", [2, 3])
-def test_every_pixel_flagged_equals_supersample(k, monkeypatch):
-    """Every pixel re-shaded at k x k sub-samples = supersample=k (image and alpha)."""
+@pytest.mark.parametrize("k, pixel_radius", [(2, 0.0), (3, 0.0), (2, 0.56)])
+def test_every_pixel_flagged_equals_supersample(k, pixel_radius, monkeypatch):
+    """Every pixel re-shaded at k x k sub-samples = supersample=k (image and alpha); with
+    ``ShadowSettings(pixel_radius=...)`` the sub-samples' footprint is their own (1 / k of
+    a pixel), as in the supersampled frame."""
     scene, view, proj = _scene()
     lights = _lights()
+    if pixel_radius:
+        settings = tr.shading.shadows.ShadowSettings(pixel_radius=pixel_radius)
+        lights = tr.Lights(ambient=lights.ambient, **{
+            kind: dataclasses.replace(getattr(lights, kind), shadow=settings)
+            for kind in ("directional", "point")})
     monkeypatch.setattr(edge_aa, "CONTRAST_THRESHOLD", -1.0)
     kw = {"background": (0.2, 0.3, 0.4)}
     with torch.no_grad():
