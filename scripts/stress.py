@@ -574,8 +574,10 @@ def _environment(gen: torch.Generator, dtype: torch.dtype, params: list[torch.Te
                           yaw=_rand(gen, -4.0, 4.0), diffuse=_pick(gen, ("map", "sh")),
                           specular_size=_pick(gen, (4, 16)), specular_levels=_randint(gen, 2, 5),
                           specular_samples=_pick(gen, (1, 8)),
-                          specular=_pick(gen, ("split_sum", "fitted", "importance")),
+                          specular=_pick(gen, ("split_sum", "fitted", "table", "importance")),
                           importance_samples=_pick(gen, (1, 4)),
+                          table_levels=_pick(gen, (2, 3)), table_views=_pick(gen, (2, 3)),
+                          table_azimuths=_pick(gen, (2, 4)),
                           sun_threshold=_pick(gen, (None, None, 0.5, 10.0)))
 
 

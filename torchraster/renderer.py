@@ -166,8 +166,9 @@ class RenderPlan:
             the matching diffuse reduction, :mod:`~torchraster.shading.energy`) for every
             light type: ``"pbr"`` with lights or an environment and
             ``ShadingSettings(multiscatter=True)``.
-        ibl_specular: ``"split_sum"`` (prefiltered chain) or ``"importance"`` (per-pixel
-            filtered importance sampling, ``Environment(specular=...)``) when ``ibl``.
+        ibl_specular: ``Environment(specular=...)`` when ``ibl``: ``"table"`` (the
+            pre-integrated lobe table, the default), ``"split_sum"`` (prefiltered chain),
+            ``"fitted"`` or ``"importance"`` (per-pixel filtered importance sampling).
         dissolve: the dissolve effect (:mod:`~torchraster.dissolve`), e.g.
             ``"dissolve t=0.5 edge 0.05"``; empty without ``Renderer(dissolve=...)``.
         ssr: screen-space reflections replace the environment's specular where the
@@ -213,7 +214,7 @@ class RenderPlan:
     fog: tuple[str, ...] = ()
     multiscatter: bool = False
     dissolve: str = ""
-    ibl_specular: str = "split_sum"
+    ibl_specular: str = "table"
     anisotropy: int = 0
     ssr: bool = False
     amodal: int = 0
@@ -249,7 +250,7 @@ class RenderPlan:
                           for kind, ids, s in self.shadow_lights]
             steps += [f"light {kind}" + (f" x{n}" if n else "") for kind, n in self.lights]
             steps += ["ssao"] * self.ssao + ["ibl"] * self.ibl
-            if self.ibl and self.ibl_specular != "split_sum":
+            if self.ibl:
                 steps.append(f"ibl specular {self.ibl_specular}")
             steps += ["ssr"] * self.ssr
             steps += ["energy compensation"] * self.multiscatter
@@ -614,7 +615,7 @@ class Renderer(nn.Module):
             multiscatter=self.shading_settings.multiscatter and shading == "pbr" and bool(
                 light_kinds or environment is not None),
             ibl_specular=environment.specular_mode if environment is not None
-            else "split_sum", ssr=ssr,
+            else "table", ssr=ssr,
             amodal=scene.num_objects if "amodal" in requested else 0,
             motion=_motion_steps(requested), edge_supersample=self.raster_settings.edge_supersample)
 

@@ -23,7 +23,10 @@ reflection r = reflect(-v, n)::
 diffuse reduction are the energy convention of :mod:`torchraster.shading.energy`, the same
 for punctual and ambient light; both are off with ``multiscatter=False``. With
 ``specular="importance"`` the prefiltered lookup is replaced by :func:`specular_importance`,
-the lobe's mean radiance by per-pixel filtered importance sampling. With
+the lobe's mean radiance by per-pixel filtered importance sampling; with
+``specular="table"`` by a table of the exact lobe's mean radiance per environment
+(:mod:`torchraster.shading.ibl_table`, roughness >= 0.3; blended into the split sum
+between 0.2 and 0.3). With
 ``Environment(sun_threshold=...)`` the map's sun is split off (:func:`extract_sun`): the
 chain holds the residual and ``spec`` gains the sun's exact GGX term
 (:func:`sun_specular`) before ``ms``.
@@ -62,6 +65,13 @@ from torchraster.numerics import (
 )
 from torchraster.shading.brdf import MIN_ROUGHNESS, d_ggx, v_smith_ggx_correlated
 from torchraster.shading.energy import MIN_DFG_ALBEDO, energy_terms
+from torchraster.shading.ibl_table import (
+    TABLE_BLEND,
+    TABLE_MIN_ROUGHNESS,
+    lookup_specular_table,
+    specular_table,
+    table_atlas,
+)
 from torchraster.shading.lights import (  # one SH basis for ambient lights and IBL
     SH_C0,
     SH_C1,
@@ -114,9 +124,11 @@ __all__ = [
     "shade_ibl",
 ]
 
-#: IBL specular methods: the split-sum prefiltered chain (one lookup a pixel) or per-pixel
-#: filtered importance sampling of the GGX lobe (:func:`specular_importance`).
-SPECULAR_MODES: tuple[str, ...] = ("split_sum", "fitted", "importance")
+#: IBL specular methods: the split-sum prefiltered chain (one lookup a pixel), the same
+#: chain at the lobe's fitted mean and spread, the pre-integrated lobe table
+#: (:mod:`torchraster.shading.ibl_table`) or per-pixel filtered importance sampling of the
+#: GGX lobe (:func:`specular_importance`).
+SPECULAR_MODES: tuple[str, ...] = ("split_sum", "fitted", "table", "importance")
 
 #: Default size and samples of the split-sum DFG table :func:`shade_ibl` reads (coarser than
 #: the lighting pass's ``energy.DFG_LUT_SIZE``: its error hides under the prefiltered map's).
@@ -1039,14 +1051,22 @@ class Environment:
             venice_sunset_1k in scripts/bench_quality.py (docs/benchmarks.md,
             section quality-ibl).
         specular: how :func:`shade_ibl` integrates the specular lobe (stored as
-            :attr:`specular_mode`): ``"split_sum"`` (default: the prefiltered chain, one
+            :attr:`specular_mode`): ``"split_sum"`` (the prefiltered chain, one
             lookup a pixel, along the lobe's dominant direction), ``"fitted"`` (the same
             chain read along the lobe's fitted mean direction at its fitted width,
             :func:`fitted_lobe`: lower mean error at roughness 0.4-0.9, larger worst-case
-            errors) or ``"importance"`` (:func:`specular_importance`:
+            errors), ``"table"`` (default: the exact single-scattering lobe's mean radiance,
+            pre-integrated per map into a table over reflection direction, n.v, the normal's
+            azimuth about the reflection and roughness >= 0.3,
+            :mod:`~torchraster.shading.ibl_table`; ~1 % mean error at roughness 0.3-1 on
+            venice_sunset_1k; built on first use in ~1 s, ~47 MB) or ``"importance"``
+            (:func:`specular_importance`:
             ``importance_samples`` filtered samples of the GGX lobe a pixel, closer to
             the true integral at high roughness; docs/benchmarks.md, ibl-specular).
         importance_samples: samples a pixel for ``specular="importance"`` (>= 1).
+        table_levels, table_views, table_azimuths: knobs of :func:`specular_table`
+            (roughness levels from 0.3 to 1, nodes of acos(n.v) and of the normal's azimuth
+            about the reflection; defaults 8, 8, 16).
         sun_threshold: None (default) or a level in units of the map's mean radiance:
             the texels near the brightest one that exceed it give their excess to an
             extracted sun (:func:`extract_sun`), shaded per pixel with the exact GGX BRDF
@@ -1078,8 +1098,11 @@ class Environment:
         diffuse: str = "map",
         irradiance_height: int = 16,
         irradiance_source_height: int | None = 32,
-        specular: str = "split_sum",
+        specular: str = "table",
         importance_samples: int = 16,
+        table_levels: int = 8,
+        table_views: int = 8,
+        table_azimuths: int = 16,
         sun_threshold: float | None = None,
     ) -> None:
         if isinstance(radiance, torch.Tensor) and radiance.dim() == 3:
@@ -1119,6 +1142,13 @@ class Environment:
                              f"{importance_samples!r}")
         self.specular_mode = specular
         self.importance_samples = importance_samples
+        for name, val in (("table_levels", table_levels), ("table_views", table_views),
+                          ("table_azimuths", table_azimuths)):
+            if isinstance(val, bool) or not isinstance(val, int) or val < 2:
+                raise ValueError(f"{name}: expected an int >= 2, got {val!r}")
+        if table_azimuths % 2:
+            raise ValueError(f"table_azimuths: expected an even int, got {table_azimuths!r}")
+        self.table_knobs = (table_levels, table_views, table_azimuths)
         if sun_threshold is not None and (isinstance(sun_threshold, bool) or not isinstance(
                 sun_threshold, (int, float)) or not math.isfinite(sun_threshold) or
                 sun_threshold <= 0):
@@ -1132,6 +1162,7 @@ class Environment:
         self._sh: torch.Tensor | None = None
         self._spec: list[torch.Tensor] | None = None
         self._spec_atlas: tuple[torch.Tensor, torch.Tensor] | None = None
+        self._table: list[torch.Tensor] | None = None
 
     @property
     def sh(self) -> torch.Tensor:
@@ -1272,6 +1303,33 @@ class Environment:
                            power.expand(b, -1), spread.expand(b))
         return self._scale(finish_low_precision(out, n.dtype))
 
+    @property
+    def lobe_table_atlas(self) -> list[torch.Tensor]:
+        """:func:`~torchraster.shading.ibl_table.table_atlas` of the
+        :func:`~torchraster.shading.ibl_table.specular_table` of :attr:`specular_source`
+        (env space, without intensity): ``[volume, blocks]``, built on first use."""
+        if self._table is None:
+            levels, views, azimuths = self.table_knobs
+            self._table = _cached("table", self.radiance, (*self.table_knobs,
+                                                           self.sun_threshold),
+                                  lambda: list(table_atlas(specular_table(
+                                      self.specular_source, levels=levels, views=views,
+                                      azimuths=azimuths))))
+        return self._table
+
+    def specular_table_lookup(self, n: torch.Tensor, v: torch.Tensor, roughness: torch.Tensor
+                              ) -> torch.Tensor:
+        """Mean radiance of the single-scattering GGX lobe of world normals / view
+        directions ``n``, ``v`` ``(B, 3, H, W)`` at perceptual ``roughness`` ``(B, 1, H, W)``
+        (clamped to >= 0.3) from :attr:`lobe_table_atlas` -> ``(B, 3, H, W)``. With
+        :attr:`sun_threshold` set, of the residual (no sun)."""
+        check_tensor("n", n, ("B", 3, "H", "W"), floating=True)
+        volume, blocks = self.lobe_table_atlas
+        if volume.shape[0] not in (1, n.shape[0]):
+            raise ValueError(f"n: batch {n.shape[0]} does not match the environment's")
+        out = lookup_specular_table(volume, blocks, self.to_env(n), self.to_env(v), roughness)
+        return self._scale(finish_low_precision(out, n.dtype))
+
     def _chain_atlas(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
         """:attr:`specular_chain` packed by :func:`latlong_atlas` in ``dtype`` (kept)."""
         if self._spec_atlas is None or self._spec_atlas[0].dtype != dtype:
@@ -1320,7 +1378,9 @@ def shade_ibl(
             within 1 % mean error in scripts/bench_quality.py.
         specular: ``"split_sum"`` (prefiltered chain along the dominant direction,
             :func:`dominant_direction`), ``"fitted"`` (along the lobe's mean direction, at
-            the chain roughness of the lobe's spread: :func:`fitted_lobe`) or
+            the chain roughness of the lobe's spread: :func:`fitted_lobe`), ``"table"``
+            (:meth:`Environment.specular_table_lookup` times the same ``E``, blended into
+            the split sum over roughness 0.2-0.3 and the split sum below) or
             ``"importance"`` (the lobe's mean radiance by :meth:`Environment.specular_lobe`
             times the same ``E``); None: ``env.specular_mode``.
         importance_samples: samples a pixel for ``"importance"``; None:
@@ -1382,6 +1442,8 @@ def shade_ibl(
         spec = env.specular_lobe(n, v, f0, f90, rough, importance_samples) * e_ss
     elif mode == "fitted":
         spec = env.specular(*fitted_lobe(n, r, n_dot_v, rough)) * e_ss
+    elif mode == "table":
+        spec = _table_or_split_sum(env, n, v, r, rough) * e_ss
     else:
         spec = env.specular(dominant_direction(n, r, rough), rough) * e_ss
     sun = env.sun_light(n, v, f0, f90, rough)
@@ -1393,28 +1455,54 @@ def shade_ibl(
     return out * ao if ao is not None else out
 
 
-def _shade_covered(mask: torch.Tensor, *maps: torch.Tensor | Environment | None, **kw
-                   ) -> torch.Tensor:
-    """:func:`shade_ibl` of the pixels where ``mask > 0`` only: each item's covered pixels
-    are gathered to the front of a ``(B, C, 1, M)`` strip (M = the most covered pixels of
-    any item; an item's spare slots are shaded with zero inputs and dropped), shaded, and
-    scattered back into a zero ``(B, 3, H, W)`` image. ``"importance"`` rotates its samples
-    by the pixel position, so it shades the whole frame (uncovered inputs zeroed)."""
-    *images, env = maps
-    b, _, h, w = mask.shape
-    covered = (mask > 0).reshape(b, h * w)
-    count = int(covered.sum(1).max()) if covered.numel() else 0
+def _table_or_split_sum(env: Environment, n: torch.Tensor, v: torch.Tensor, r: torch.Tensor,
+                        rough: torch.Tensor) -> torch.Tensor:
+    """``specular="table"``: the lobe table at roughness >= :data:`TABLE_MIN_ROUGHNESS`; below
+    it the split sum plus the table's correction at that level, ``split(rough) + w (table(
+    0.3) - split(0.3))``, fading to the plain split sum over :data:`TABLE_BLEND` (``w`` from 1
+    to 0; continuous in roughness; closer than blending the two: venice r = 0.25, 2.8 %
+    against 3.8 % (split sum) and 5.1 % (lerp)). Each term is evaluated on the pixels that
+    need it only."""
+    lo = TABLE_MIN_ROUGHNESS - TABLE_BLEND
+    w = ((rough - lo) / TABLE_BLEND).clamp(0.0, 1.0)
+    table = _on_pixels(rough.detach() >= lo, env.specular_table_lookup, n, v,
+                       rough.clamp_min(TABLE_MIN_ROUGHNESS))
+
+    def split_pair(n_: torch.Tensor, r_: torch.Tensor, ro: torch.Tensor) -> torch.Tensor:
+        top = torch.full_like(ro, TABLE_MIN_ROUGHNESS)
+        return torch.cat((env.specular(dominant_direction(n_, r_, ro), ro),
+                          env.specular(dominant_direction(n_, r_, top), top)), 1)
+
+    below = _on_pixels(rough.detach() < TABLE_MIN_ROUGHNESS, split_pair, n, r, rough)
+    if below is None:
+        return table
+    split, split_top = below[:, :3], below[:, 3:]
+    if table is None:
+        return split
+    corrected = (split + w.to(split.dtype) * (table - split_top)).clamp_min(0.0)
+    return torch.where(rough >= TABLE_MIN_ROUGHNESS, table, corrected)
+
+
+def _on_pixels(select: torch.Tensor, fn, *images: torch.Tensor | None  # noqa: ANN001
+               ) -> torch.Tensor | None:
+    """``fn(*images)`` evaluated on the pixels where ``select`` ``(B, 1, H, W)`` (bool) is
+    True only: each item's selected pixels are gathered to the front of a ``(B, C, 1, M)``
+    strip (M = the most selected pixels of any item; an item's spare slots get zero inputs
+    and are dropped), passed to ``fn`` and scattered back into a zero ``(B, C', H, W)``
+    image. None images stay None. Returns None when no pixel is selected; calls ``fn`` on
+    the whole images when every pixel is."""
+    b, _, h, w = select.shape
+    chosen = select.reshape(b, h * w)
+    count = int(chosen.sum(1).max()) if chosen.numel() else 0
     if count == 0:
-        return images[0].new_zeros(b, 3, h, w)
-    if kw["specular"] == "importance":  # its sample pattern follows the pixel position:
-        cov = covered.view(b, 1, h, w)  # shade the whole frame, covered inputs only
-        clean = [None if t is None else torch.where(cov, t, 0.0) for t in images]
-        return torch.where(cov, shade_ibl(*clean, env, **kw), 0.0)
+        return None
+    if count == h * w and bool(chosen.all()):
+        return fn(*images)
     if b == 1:
-        idx = covered[0].nonzero().reshape(1, -1)
-    else:  # covered pixels first in each row, in pixel order
-        idx = torch.argsort((~covered).to(torch.uint8), dim=1, stable=True)[:, :count]
-    keep = torch.gather(covered, 1, idx).view(b, 1, 1, count)
+        idx = chosen[0].nonzero().reshape(1, -1)
+    else:  # selected pixels first in each row, in pixel order
+        idx = torch.argsort((~chosen).to(torch.uint8), dim=1, stable=True)[:, :count]
+    keep = torch.gather(chosen, 1, idx).view(b, 1, 1, count)
 
     def pack(t: torch.Tensor | None) -> torch.Tensor | None:
         if t is None:
@@ -1423,7 +1511,22 @@ def _shade_covered(mask: torch.Tensor, *maps: torch.Tensor | Environment | None,
         t = torch.gather(t.reshape(b, c, h * w), 2, idx[:, None].expand(b, c, count))
         return torch.where(keep, t.view(b, c, 1, count), 0.0)  # spare slots: zeros
 
-    out = torch.where(keep, shade_ibl(*(pack(t) for t in images), env, **kw), 0.0)
-    full = out.new_zeros(b, 3, h * w)
-    return full.scatter(2, idx[:, None].expand(b, 3, count), out.view(b, 3, count)
-                        ).view(b, 3, h, w)
+    out = torch.where(keep, fn(*(pack(t) for t in images)), 0.0)
+    c = out.shape[1]
+    full = out.new_zeros(b, c, h * w)
+    return full.scatter(2, idx[:, None].expand(b, c, count), out.view(b, c, count)
+                        ).view(b, c, h, w)
+
+
+def _shade_covered(mask: torch.Tensor, *maps: torch.Tensor | Environment | None, **kw
+                   ) -> torch.Tensor:
+    """:func:`shade_ibl` of the pixels where ``mask > 0`` only (:func:`_on_pixels`): the
+    others are 0. ``"importance"`` rotates its samples by the pixel position, so it shades
+    the whole frame (uncovered inputs zeroed)."""
+    *images, env = maps
+    covered = mask > 0
+    if kw["specular"] == "importance":  # its sample pattern follows the pixel position:
+        clean = [None if t is None else torch.where(covered, t, 0.0) for t in images]
+        return torch.where(covered, shade_ibl(*clean, env, **kw), 0.0)
+    out = _on_pixels(covered, lambda *t: shade_ibl(*t, env, **kw), *images)
+    return images[0].new_zeros(mask.shape[0], 3, *mask.shape[2:]) if out is None else out
