@@ -37,7 +37,7 @@ import torch.nn.functional as F
 
 from torchraster._validate import check_tensor
 from torchraster.numerics import compute_dtype, dot, grid_sample
-from torchraster.shading.brdf import d_ggx, v_smith_ggx_correlated
+from torchraster.shading.brdf import MIN_COS, MIN_ROUGHNESS
 from torchraster.texture import latlong_solid_angles, latlong_uv, pad_texture, sample_latlong
 
 __all__ = [
@@ -120,6 +120,16 @@ def lobe_radiance_level(
     r_dir, e_t, e_p = _frame(theta, phi[:1].expand(h))  # R at column 0 of each row, (h, 3)
     l_dir = _frame(theta[:, None].expand(h, w), phi[None, :].expand(h, w))[0]  # (h, w, 3)
     dw = latlong_solid_angles(h, w, device=dev, dtype=dt).view(1, h, 1)
+    # every slice's n.l and |l + v|^2 from l - R (exact differences of unit vectors, so the
+    # half vector stays accurate in float32 where l + v -> 0: grazing views, l near R):
+    # q = |l - R|^2, t_l / p_l = e_t / e_p . (l - R), with n = c R + s (cos psi e_t +
+    # sin psi e_p) and v = 2 c n - R:  n.l = c (1 - q / 2) + s tang_l,
+    # |l + v|^2 = q (1 - 2 c^2) + 4 c s tang_l + 4 c^2
+    diff = l_dir[None] - r_dir[:, None, None]  # (h_o, h_s, w, 3)
+    q = diff.square().sum(-1)
+    t_l, p_l = (torch.einsum("oi,ojwi->ojw", e, diff) for e in (e_t, e_p))
+    del diff
+    a = max(roughness, MIN_ROUGHNESS) ** 2
     spec = torch.fft.rfft(src, dim=-1)  # (B, 3, h, w/2 + 1)
     half = azimuths // 2
     psi = torch.arange(half + 1, device=dev, dtype=dt) * (2 * math.pi / azimuths)
@@ -130,16 +140,17 @@ def lobe_radiance_level(
         s = math.sqrt(1.0 - c * c)
         slices = psi[:1] if k == 0 else psi  # n = R: psi does not matter
         for i0 in range(0, slices.numel(), per):
-            ps = slices[i0 : i0 + per]
-            tang = torch.cos(ps)[:, None, None] * e_t + torch.sin(ps)[:, None, None] * e_p
-            n = c * r_dir + s * tang  # (S, h, 3)
-            v = 2.0 * c * n - r_dir
-            n_dot_l = torch.einsum("soi,jwi->sojw", n, l_dir)
-            v_dot_l = torch.einsum("soi,jwi->sojw", v, l_dir)
-            n_dot_h = (n_dot_l + c) * torch.rsqrt((2.0 + 2.0 * v_dot_l).clamp_min(1e-12))
-            weight = (d_ggx(n_dot_h.clamp(0.0, 1.0), roughness)
-                      * v_smith_ggx_correlated(torch.full_like(n_dot_l, c), n_dot_l, roughness)
-                      * n_dot_l.clamp_min(0.0) * dw)  # (S, h_o, h_s, w)
+            ps = slices[i0 : i0 + per].view(-1, 1, 1, 1)
+            tang_l = torch.cos(ps) * t_l + torch.sin(ps) * p_l
+            n_dot_l = c * (1.0 - 0.5 * q) + s * tang_l
+            lv2 = q * (1.0 - 2.0 * c * c) + (4.0 * c * s) * tang_l + 4.0 * c * c
+            n_dot_h = ((n_dot_l + c) * torch.rsqrt(lv2.clamp_min(1e-30))).clamp(0.0, 1.0)
+            # GGX D and height-correlated Smith V (Filament's forms, as shading/brdf.py)
+            k_d = a / (1.0 - n_dot_h * n_dot_h + (n_dot_h * a) ** 2)
+            nl = n_dot_l.clamp(MIN_COS, 1.0)
+            vis = 0.5 / (nl * math.sqrt(c * c * (1.0 - a * a) + a * a)
+                         + c * torch.sqrt(nl * nl * (1.0 - a * a) + a * a))
+            weight = (k_d * k_d) * vis * (n_dot_l.clamp_min(0.0) * dw) * (1.0 / math.pi)
             total = weight.sum((-1, -2))  # (S, h_o)
             ker = torch.fft.rfft(weight, dim=-1)
             spec_c = spec.to(ker.dtype)
