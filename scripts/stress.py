@@ -405,6 +405,7 @@ R_COLUMNS = [
     ("nonfinite_grad_environment", "NaN/Inf grad environment"),
     ("grad_values", "gradient values checked"), ("label_errors", "label errors"),
     ("motion_errors", "motion errors"), ("far_errors", "far-away errors"),
+    ("nograd_differs", "no-grad render differs"),
     ("motion_f16_overflow", "float16 flow grad overflow (known, not counted)"),
     ("rejected", "rejected (ValueError/TypeError)"), ("exceptions", "exceptions"),
 ]
@@ -672,6 +673,12 @@ def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
     c["nonfinite_image"] += _nonfinite(out.image)
     c["nonfinite_alpha"] += _nonfinite(out.alpha)
     c["nonfinite_gbuffer"] += sum(_nonfinite(v) for v in out.gbuffer.values())
+    if _chance(gen, 0.25):  # the no-grad path: frames finished in place, fragments released
+        with torch.no_grad():
+            again = renderer(scene, view, proj, lights, env, channels=ONE_FRAME_CHANNELS)
+        c["nonfinite_image"] += _nonfinite(again.image)
+        c["nograd_differs"] += int(not torch.allclose(again.image, out.image.detach(),
+                                                      rtol=1e-3, atol=1e-5, equal_nan=True))
     loss = (out.image * torch.randn(out.image.shape, generator=gen, dtype=dtype)).sum()
     for v in out.gbuffer.values():
         if v.is_floating_point() and v.requires_grad:

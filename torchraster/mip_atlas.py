@@ -122,6 +122,11 @@ class MipAtlas:
                                       self.address, float(lod_bias))
 
 
+#: Points a chunk of :meth:`MipAtlas.sample`'s forward evaluates at once: its temporaries
+#: (level weights, grid, taps; ~60 B a point) stay bounded (issue 23, memory).
+LOOKUP_CHUNK: int = 2**18
+
+
 def _taps(uv: torch.Tensor, duv_dx: torch.Tensor, duv_dy: torch.Tensor, table: torch.Tensor,
           size: tuple[int, int], address: tuple[str, str], lod_bias: float,
           atlas_size: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -166,11 +171,18 @@ class _TrilinearLookup(torch.autograd.Function):
         ctx.args = (size, address, lod_bias)
         n = uv.shape[1]
         dt = compute_dtype(uv, atlas)  # float32 for half-precision lookups
-        frac, grid = _taps(uv.to(dt), duv_dx.to(dt), duv_dy.to(dt), table, size, address,
-                           lod_bias, tuple(atlas.shape[-2:]))
-        s = grid_sample(atlas.to(dt), grid, mode="bilinear",
-                        padding_mode="border", align_corners=True)[0, :, 0]  # (C, 2N)
-        return finish_low_precision(torch.lerp(s[:, :n], s[:, n:], frac[None]), uv.dtype)
+        tex = atlas.to(dt)
+        out = uv.new_empty(atlas.shape[1], n)
+        for i in range(0, n, LOOKUP_CHUNK):  # bounded temporaries (the points are independent)
+            j = min(i + LOOKUP_CHUNK, n)
+            frac, grid = _taps(uv[:, i:j].to(dt), duv_dx[:, i:j].to(dt), duv_dy[:, i:j].to(dt),
+                               table, size, address, lod_bias, tuple(atlas.shape[-2:]))
+            s = grid_sample(tex, grid, mode="bilinear", padding_mode="border",
+                            align_corners=True)[0, :, 0]  # (C, 2m)
+            m = j - i
+            out[:, i:j] = finish_low_precision(torch.lerp(s[:, :m], s[:, m:], frac[None]),
+                                               uv.dtype)
+        return out
 
     @staticmethod
     @once_differentiable

@@ -780,8 +780,8 @@ class Renderer(nn.Module):
             gbs = _motion_channels(plan, scene, layers, gbs, frames, face_ranges, b,
                                    self._raster_memo)
         if not torch.is_grad_enabled() and not self._raster_memo.holds(frags):
-            for f in layers:  # memory: the texture LOD's derivatives are used up
-                f.bary_dx_packed = f.bary_dy_packed = None
+            for f in layers:  # memory: everything is interpolated (face ids, depth stay)
+                f.release_interpolation()
         eye = camera_position(view.to(positions.dtype))
         groups = None
         if plan.shadow_lights:

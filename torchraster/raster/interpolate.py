@@ -160,6 +160,9 @@ def interpolate_packed(
 
 def _interpolate(vertex_attrs, frags, derivatives, image):
     """Values (and derivatives) packed (C, N) or as (B, C, H, W) images."""
+    if frags.bary_packed is None:
+        raise ValueError("frags: released by Fragments.release_interpolation() (no "
+                         "barycentrics left); interpolate before releasing, or rasterize again")
     vertex_attrs = _check_attrs(vertex_attrs, frags, derivatives)
     weights = [frags.bary_packed] + ([frags.bary_dx_packed, frags.bary_dy_packed]
                                      if derivatives else [])

@@ -121,6 +121,7 @@ class Fragments:
         self.deeper: tuple[Fragments, ...] = ()  # layers 1 .. K-1 (no reference cycle)
         self.silhouettes: torch.Tensor | None = None
         self._cache: dict[str, torch.Tensor] = {}
+        self._dtype = bary_packed.dtype
 
     @property
     def corners(self) -> torch.Tensor:
@@ -194,7 +195,20 @@ class Fragments:
 
     @property
     def mask(self) -> torch.Tensor:
-        return (self.face_id >= 0).unsqueeze(1).to(self.bary_packed.dtype)
+        return (self.face_id >= 0).unsqueeze(1).to(self._dtype)
+
+    def release_interpolation(self) -> None:
+        """Drop what only interpolation reads (memory, once every attribute is
+        interpolated): the packed barycentrics and their derivatives, the corners, items and
+        face rows of the covered pixels, and their unpacked frames. ``face_id``, ``pixels``,
+        ``depth`` / ``depth_packed``, ``mask`` and ``silhouettes`` stay; interpolating
+        afterwards raises."""
+        self.depth_packed  # noqa: B018 - evaluated now: its closure holds the rows and table
+        self.bary_packed = self.bary_dx_packed = self.bary_dy_packed = None
+        self._corners = self._items = self.rows = None
+        self.row_face = self.row_item = self._row_front = None
+        for name in ("bary", "bary_dx", "bary_dy"):
+            self._cache.pop(name, None)
 
 
 def rasterize(
