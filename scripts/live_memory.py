@@ -6,7 +6,7 @@ the peak is exact and the place of the peak is named. A ``TorchDispatchMode`` se
 op's outputs, counts each storage once (views share it) and releases it when the last
 tensor seen on it is collected (weak references).
 
-    python scripts/live_memory.py [--res 512] [--batch 8] [--lights 1]
+    python scripts/live_memory.py [--res 512] [--batch 8] [--lights 1] [--backward]
 
 Prints the peak in bytes per pixel above what existed before the call, the op and the
 torchraster frames at the peak, and the largest storages alive there.
@@ -15,6 +15,7 @@ torchraster frames at the peak, and the largest storages alive there.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import traceback
 import weakref
 
@@ -73,14 +74,21 @@ def main() -> None:
     ap.add_argument("--res", type=int, default=512)
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--lights", type=int, default=1)
+    ap.add_argument("--backward", action="store_true",
+                    help="forward + backward to the vertex positions (as bench_memory's "
+                    "fwd+bwd rows)")
     args = ap.parse_args()
     _, scene, view, proj, lights = bench_memory._scene(args.res, args.batch, args.lights)
     renderer = tr.Renderer((args.res, args.res), shading="pbr")
-    with torch.no_grad():
-        renderer(scene, view[:1], proj, lights)  # warm-up: pyramids, tables
+    positions = scene.positions.clone().requires_grad_(args.backward)
+    scene = dataclasses.replace(scene, positions=positions)
+    with torch.set_grad_enabled(args.backward):
+        renderer(scene, view[:1], proj, lights).image.sum()  # warm-up: pyramids, tables
         live = LiveBytes()
         with live:
-            renderer(scene, view, proj, lights)
+            loss = renderer(scene, view, proj, lights).image.square().mean()
+            if args.backward:
+                loss.backward()
     px = args.batch * args.res * args.res
     print(f"live peak {live.peak / px:.1f} B/px at {live.where[0]}")
     print("\n".join("  " + s for s in live.where[1]))

@@ -73,3 +73,79 @@ def test_no_grad_render_equals_the_autograd_render_after_release() -> None:
     assert torch.equal(a.image, b.image.detach())
     for ch in chans:
         assert torch.equal(getattr(a.gbuffer, ch), getattr(b.gbuffer, ch).detach())
+
+
+def test_shade_writing_into_the_albedo_equals_a_fresh_frame() -> None:
+    from torchraster.gbuffer import GBuffer
+    from torchraster.shading import shade
+    from torchraster.shading.lights import Lights, PointLights
+
+    g = torch.Generator().manual_seed(3)
+    b, h, w = 3, 5, 7
+    mask = (torch.rand(b, 1, h, w, generator=g) > 0.4).float()
+    mask[1] = 0.0  # an item with nothing covered keeps no albedo either
+    albedo = torch.rand(b, 3, h, w, generator=g) + 5.0  # garbage where uncovered
+    gb = GBuffer(position=torch.randn(b, 3, h, w, generator=g),
+                 normal=torch.randn(b, 3, h, w, generator=g), albedo=albedo,
+                 metallic=torch.rand(b, 1, h, w, generator=g),
+                 roughness=torch.rand(b, 1, h, w, generator=g), mask=mask)
+    lights = Lights(point=PointLights(position=torch.tensor([[[0.0, 3.0, 2.0]]]),
+                                      color=torch.ones(1, 1, 3), intensity=torch.ones(1, 1)))
+    eye = torch.tensor([[0.0, 0.0, 4.0]]).expand(b, 3)
+    with torch.no_grad():
+        fresh = shade(gb, camera_position=eye, lights=lights)
+        kept = albedo.clone()
+        reused = shade(gb.replace(albedo=kept), camera_position=eye, lights=lights,
+                       reuse_albedo=True)
+    assert reused.data_ptr() == kept.data_ptr()  # written into the albedo's frame
+    assert torch.equal(reused, fresh)
+    # with autograd (or an expanded albedo) the option is ignored: the albedo is untouched
+    const = torch.full((1, 3, 1, 1), 0.5).expand(b, 3, h, w)
+    with torch.no_grad():
+        out = shade(gb.replace(albedo=const), camera_position=eye, lights=lights,
+                    reuse_albedo=True)
+    assert out.data_ptr() != const.data_ptr() and bool((const == 0.5).all())
+
+
+def test_renderer_keeps_a_requested_albedo() -> None:
+    import trimesh
+
+    ico = trimesh.creation.icosphere(subdivisions=2)
+    mesh = tr.Mesh(torch.tensor(ico.vertices, dtype=torch.float32), torch.tensor(ico.faces))
+    view = tr.camera.look_at([0.0, 0.4, 3.0], [0.0, 0.0, 0.0])
+    proj = tr.camera.perspective(40.0, 1.0, 0.1, 10.0)
+    lights = tr.config.lights_from_config([{"type": "point", "position": [1, 2, 2],
+                                            "intensity": 10.0}])
+    r = tr.Renderer(32, shading="pbr")
+    with torch.no_grad():
+        a = r(mesh, view, proj, lights, channels={"albedo"})
+        b = r(mesh, view, proj, lights)
+    ref = r(mesh, view, proj, lights, channels={"albedo"})
+    assert torch.equal(a.gbuffer.albedo, ref.gbuffer.albedo.detach())
+    assert torch.equal(a.image, ref.image.detach()) and torch.equal(b.image, a.image)
+
+
+def test_ssr_without_environment_reads_the_albedo_after_lighting() -> None:
+    # SSR's Fresnel weight reads gb.albedo after the lighting pass: the lighting must not
+    # write its radiance there (with no environment nor ambient light it otherwise would)
+    import trimesh
+
+    ico = trimesh.creation.icosphere(subdivisions=2)
+    sphere = torch.tensor(ico.vertices, dtype=torch.float32) * 0.5 + torch.tensor([0, 0.5, 0])
+    floor = torch.tensor([[-3.0, 0, -3], [3, 0, -3], [3, 0, 3], [-3, 0, 3]])
+    pos = torch.cat([sphere, floor])
+    faces = torch.cat([torch.tensor(ico.faces), torch.tensor([[0, 2, 1], [0, 3, 2]]) + len(sphere)])
+    mats = [tr.Material(base_color_factor=(0.9, 0.3, 0.2, 1.0), roughness_factor=0.05,
+                        metallic_factor=1.0)]
+    scene = tr.RenderScene.from_mesh(tr.Mesh(pos, faces), torch.zeros(len(faces),
+                                                                      dtype=torch.long), mats)
+    view = tr.camera.look_at([0.0, 1.0, 3.0], [0.0, 0.3, 0.0])
+    proj = tr.camera.perspective(50.0, 1.0, 0.1, 20.0)
+    lights = tr.config.lights_from_config([{"type": "point", "position": [1, 3, 2],
+                                            "intensity": 30.0}])
+    r = tr.Renderer(32, shading="pbr", ssr=tr.post.SSR(max_steps=16))
+    with torch.no_grad():
+        a = r(scene, view, proj, lights)
+    b = r(scene, view, proj, lights)
+    assert "ssr" in a.plan
+    torch.testing.assert_close(a.image, b.image.detach(), rtol=1e-5, atol=1e-6)

@@ -284,6 +284,7 @@ def geometry_pass(
     face_object: torch.Tensor | None = None,
     object_category: torch.Tensor | None = None,
     object_coords: torch.Tensor | None = None,
+    release_derivatives: bool = False,
 ) -> GBuffer:
     """Compute the requested G-buffer channels (see the module table).
 
@@ -305,6 +306,8 @@ def geometry_pass(
             ``semantic``).
         object_category: ``(N + 1,)`` int64 category of each object id (``semantic``).
         object_coords: ``(B, V, 3)`` or ``(V, 3)`` NOCS coordinates (``object_coords``).
+        release_derivatives: drop ``frags``' barycentric derivatives once the textures are
+            sampled (memory: the caller reads them no more).
 
     Returns:
         A :class:`GBuffer` holding exactly the requested channels, each ``(B, C, H, W)``.
@@ -413,6 +416,8 @@ def geometry_pass(
     normal_mapped = "normal" in channels and "tangent" in need and tangents is not None
     if not normal_mapped:
         uv = duv_dx = duv_dy = None
+        if release_derivatives:  # the texture LOD is done: not alive at the pass's peak
+            frags.bary_dx_packed = frags.bary_dy_packed = None
 
     # geometry after the materials: the texture lookups' temporaries (the pass's peak)
     # do not coexist with these images
@@ -443,9 +448,13 @@ def geometry_pass(
                 mat_index = torch.zeros(n, dtype=torch.long, device=device)
             nrm = _apply_normal_maps(nrm, tan, mats, mat_index, sample)
             del tan
-        nrm = safe_normalize(nrm, dim=0)
+        in_place = not torch.is_grad_enabled()  # memory: no packed copies at the peak
+        nrm = safe_normalize(nrm, dim=0, inplace=in_place)
         if frags.front_facing is not None:  # back faces are seen from behind: flip
-            nrm = torch.where(frags.front_facing[None], nrm, -nrm)
+            if in_place:  # x * -1 is -x, bit for bit
+                nrm.mul_(torch.where(frags.front_facing, 1.0, -1.0).to(nrm.dtype)[None])
+            else:
+                nrm = torch.where(frags.front_facing[None], nrm, -nrm)
         out["normal"] = to_image(nrm, frags)
     return GBuffer(**out)
 

@@ -47,7 +47,8 @@ def dot(a: torch.Tensor, b: torch.Tensor, dim: int = -3) -> torch.Tensor:
     return (a * b).sum(dim=dim, keepdim=True)
 
 
-def safe_normalize(x: torch.Tensor, dim: int = -3, eps: float = NORMALIZE_EPS) -> torch.Tensor:
+def safe_normalize(x: torch.Tensor, dim: int = -3, eps: float = NORMALIZE_EPS,
+                   inplace: bool = False) -> torch.Tensor:
     """Unit vectors along ``dim``; vectors with squared length <= ``eps`` map to 0.
 
     "Double where": the reciprocal square root only sees safe values, so neither the value
@@ -58,6 +59,8 @@ def safe_normalize(x: torch.Tensor, dim: int = -3, eps: float = NORMALIZE_EPS) -
         x: any shape, vector components on ``dim``, e.g. ``(B, 3, H, W)`` or ``(B, V, 3)``.
         dim: the component axis.
         eps: squared length treated as zero (default :data:`NORMALIZE_EPS`).
+        inplace: scale ``x`` itself (the same products; memory) when no graph records it
+            (autograd off or ``x`` outside it) and ``x`` is in its compute dtype.
 
     Returns:
         Tensor of ``x``'s shape and dtype.
@@ -68,6 +71,8 @@ def safe_normalize(x: torch.Tensor, dim: int = -3, eps: float = NORMALIZE_EPS) -
     ok = sq > eps
     inv = torch.where(ok, torch.rsqrt(torch.where(ok, sq, torch.ones_like(sq))),
                       torch.zeros_like(sq))
+    if inplace and xc is x and not (torch.is_grad_enabled() and x.requires_grad):
+        return x.mul_(inv)
     return (xc * inv).to(dtype)
 
 

@@ -767,6 +767,7 @@ class Renderer(nn.Module):
         if "normal" in plan.channels and normals is None:
             normals = vertex_normals(positions, scene.faces)
         layers = frags.layers if plan.layers > 1 else (frags,)
+        release = not torch.is_grad_enabled() and not self._raster_memo.holds(frags)
         gbs = [geometry_pass(f, plan.channels, positions=positions, view=view,
                              normals=normals, uvs=scene.uvs, tangents=scene.tangents,
                              face_material=scene.face_material, materials=scene.materials,
@@ -774,12 +775,13 @@ class Renderer(nn.Module):
                              max_anisotropy=self.texture_settings.max_anisotropy,
                              face_object=scene.face_object,
                              object_category=scene.object_category,
-                             object_coords=scene.object_coords)
+                             object_coords=scene.object_coords,
+                             release_derivatives=release and not plan.motion)
                for f in layers]
         if plan.motion:  # per layer: the alpha modes then select them like the other channels
             gbs = _motion_channels(plan, scene, layers, gbs, frames, face_ranges, b,
                                    self._raster_memo)
-        if not torch.is_grad_enabled() and not self._raster_memo.holds(frags):
+        if release:
             for f in layers:  # memory: everything is interpolated (face ids, depth stay)
                 f.release_interpolation()
         eye = camera_position(view.to(positions.dtype))
@@ -792,15 +794,18 @@ class Renderer(nn.Module):
         hooks: list = []  # the shadow hook of each radiance_of call (edge antialiasing)
 
         def radiance_of(gb: GBuffer, face_id: torch.Tensor, glow: torch.Tensor | None = None,
-                        rows: int = plan.resolution[0]) -> torch.Tensor:
+                        rows: int = plan.resolution[0], last_read: bool = False
+                        ) -> torch.Tensor:
             """Radiance of the surfaces ``gb``; ``rows``: pixel rows of the grid they sample
-            (the shadow filter's pixel footprint)."""
+            (the shadow filter's pixel footprint); ``last_read``: nothing reads ``gb.albedo``
+            after this (the lighting may write its radiance there)."""
             hook = None if groups is None else self._shadow_hook(groups, lights_b, scene, gb,
                                                                  face_id, view, b, proj, rows)
             hooks.append(hook)
             if plan.fog and lights is not None and self.fog.light_transmittance:
                 hook = surface_light_hook(self.fog, lights, gb.position, gb.mask, hook)
-            rad = self._shade(plan, gb, view, proj, eye, lights, environment, hook)
+            rad = self._shade(plan, gb, view, proj, eye, lights, environment, hook,
+                              reuse_albedo=last_read)
             if glow is not None:  # the dissolve's glowing band (0 where discarded)
                 rad = rad + glow.to(rad)
             if not torch.is_grad_enabled():  # a fresh frame: masked in place (memory)
@@ -810,7 +815,11 @@ class Renderer(nn.Module):
         visible = frags  # the face ids / depths antialiasing sees
         if plan.alpha == "none":
             gb = gbs[0]
-            radiance, coverage = radiance_of(gb, frags.face_id), gb.mask
+            # memory: without autograd the lighting may write into the albedo frame when no
+            # output or later pass (SSR, fog, the edge pass's 1x frame) reads it
+            last = not torch.is_grad_enabled() and "albedo" not in plan.requested and not (
+                plan.ssr or plan.fog or plan.edge_supersample > 1)
+            radiance, coverage = radiance_of(gb, frags.face_id, last_read=last), gb.mask
             transmittance = 1 - coverage
         else:
             modes, cutoffs = face_alpha_modes(scene.materials, scene.face_material,
@@ -1090,8 +1099,10 @@ class Renderer(nn.Module):
 
     def _shade(self, plan: RenderPlan, gb: GBuffer, view: torch.Tensor, proj: torch.Tensor,
                eye: torch.Tensor, lights: Lights | None,
-               environment: Environment | None, visibility=None) -> torch.Tensor:
-        """Radiance ``(B, 3, H, W)`` of the covered pixels, by the plan's shading path."""
+               environment: Environment | None, visibility=None,
+               reuse_albedo: bool = False) -> torch.Tensor:
+        """Radiance ``(B, 3, H, W)`` of the covered pixels, by the plan's shading path
+        (``reuse_albedo``: ``gb.albedo`` is read by nothing after, see ``shade``)."""
         if plan.shading == "headlight":
             to_eye = safe_normalize(eye[:, :, None, None] - gb.position, dim=1)
             return gb.albedo * (gb.normal * to_eye).sum(1, keepdim=True).clamp(min=0)
@@ -1111,7 +1122,7 @@ class Renderer(nn.Module):
                                  mask=gb.mask)  # the mask below)
         return shade(gb, camera_position=eye, lights=lights, model=self.model, ibl=ibl,
                      multiscatter=plan.multiscatter,
-                     visibility=visibility)
+                     visibility=visibility, reuse_albedo=reuse_albedo)
 
     def _topology(self, faces: torch.Tensor) -> torch.Tensor:
         """``antialias_topology(faces)``, kept for the next call with the same faces

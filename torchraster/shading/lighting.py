@@ -387,6 +387,7 @@ def shade(
     light_chunk: int | None = None,
     checkpoint_chunks: bool | None = None,
     multiscatter: bool = True,
+    reuse_albedo: bool = False,
 ) -> torch.Tensor:
     """Deferred lighting of a G-buffer.
 
@@ -418,6 +419,12 @@ def shade(
             (:mod:`torchraster.shading.energy`; the ``ibl`` hook applies its own, e.g.
             ``shade_ibl(multiscatter=...)``). False: the single-scattering BRDF of
             :func:`~torchraster.shading.brdf.cook_torrance`. Other shading models ignore it.
+        reuse_albedo: the radiance may be written into ``gbuffer.albedo``'s frame (memory:
+            one frame fewer) when nothing reads that albedo after this call. Taken only
+            without autograd, on the Cook-Torrance pass that packs, lights and writes one
+            batch item at a time (no ambient or IBL light, which read the frame later), for
+            a 3-channel albedo in the shading dtype whose pixels are rows of one frame
+            (not expanded); otherwise ignored.
 
     Returns:
         ``(B, 3, H, W)`` linear HDR radiance, 0 where ``mask`` is 0, in the G-buffer's
@@ -503,11 +510,19 @@ def shade(
     radiance = None if fused_direct else torch.zeros(b, 3, h, w, device=dev, dtype=dt)
     items: dict[int, tuple] = {}  # batch item -> its _pack_item tuple, packed on first use
     acc: list[torch.Tensor | None] = [None] * b
-    frame = torch.zeros(b, 3, h * w, device=dev, dtype=dt) if fused_direct and no_grad else None
     # memory: with one pass over the lights and no graph, each item is packed, lit and
     # written to the frame in turn (its packed copies are dropped before the next one)
-    one_pass = frame is not None and sum(len(_chunks(part.count, per_chunk))
-                                         for _, part in kinds) == 1
+    one_pass = fused_direct and no_grad and sum(len(_chunks(part.count, per_chunk))
+                                                for _, part in kinds) == 1
+    frame = None
+    if one_pass and reuse_albedo and not full_frame and albedo.shape[1] == 3 and (
+            albedo.dtype == dt and albedo.stride(3) == 1 and albedo.stride(2) == w
+            and min(albedo.stride()) > 0 and not albedo.requires_grad):  # rows of pixels
+        # item i's albedo is packed (copied) before item i's radiance overwrites it, and the
+        # uncovered pixels are zeroed below (an item without light keeps its albedo there)
+        frame = albedo.view(b, 3, h * w)
+    elif fused_direct and no_grad:
+        frame = torch.zeros(b, 3, h * w, device=dev, dtype=dt)
 
     def packed(item: int) -> tuple:
         if item not in items:
