@@ -810,6 +810,8 @@ class Renderer(nn.Module):
                 rad = rad + glow.to(rad)
             if not torch.is_grad_enabled():  # a fresh frame: masked in place (memory)
                 return rad.mul_(gb.mask)
+            if glow is None and plan.shading in LIT_MODELS:
+                return rad  # shade() zeroed the uncovered pixels (the mask is 0 / 1): no copy
             return rad * gb.mask
 
         visible = frags  # the face ids / depths antialiasing sees
@@ -874,8 +876,8 @@ class Renderer(nn.Module):
             for c in range(3):  # own frame: added in place, a channel at a time (memory)
                 radiance[:, c:c + 1].add_(transmittance * background[:, c:c + 1])
             image = radiance
-        else:
-            image = radiance + transmittance * background
+        else:  # one frame (no (B, 3, H, W) product first)
+            image = torch.addcmul(radiance, transmittance, background.to(radiance))
         if plan.fog:
             image = self._apply_fog(plan, image, gb, view, proj, eye, lights, groups, scene,
                                     face_ranges, b, environment if plan.ibl else None)
