@@ -56,7 +56,8 @@ def test_chunked_texture_lookups_are_bit_identical(monkeypatch) -> None:
         assert torch.equal(a, b)
 
 
-def test_no_grad_render_equals_the_autograd_render_after_release() -> None:
+def _sphere_scene():
+    """An icosphere, a camera and one point light: (mesh, view, proj, lights)."""
     import trimesh
 
     ico = trimesh.creation.icosphere(subdivisions=2)
@@ -65,6 +66,11 @@ def test_no_grad_render_equals_the_autograd_render_after_release() -> None:
     proj = tr.camera.perspective(40.0, 1.0, 0.1, 10.0)
     lights = tr.config.lights_from_config([{"type": "point", "position": [1, 2, 2],
                                             "intensity": 10.0}])
+    return mesh, view, proj, lights
+
+
+def test_no_grad_render_equals_the_autograd_render_after_release() -> None:
+    mesh, view, proj, lights = _sphere_scene()
     r = tr.Renderer(32, shading="pbr", raster=tr.RasterSettings(antialias=True))
     chans = {"face_id", "depth", "normal"}
     with torch.no_grad():
@@ -108,14 +114,7 @@ def test_shade_writing_into_the_albedo_equals_a_fresh_frame() -> None:
 
 
 def test_renderer_keeps_a_requested_albedo() -> None:
-    import trimesh
-
-    ico = trimesh.creation.icosphere(subdivisions=2)
-    mesh = tr.Mesh(torch.tensor(ico.vertices, dtype=torch.float32), torch.tensor(ico.faces))
-    view = tr.camera.look_at([0.0, 0.4, 3.0], [0.0, 0.0, 0.0])
-    proj = tr.camera.perspective(40.0, 1.0, 0.1, 10.0)
-    lights = tr.config.lights_from_config([{"type": "point", "position": [1, 2, 2],
-                                            "intensity": 10.0}])
+    mesh, view, proj, lights = _sphere_scene()
     r = tr.Renderer(32, shading="pbr")
     with torch.no_grad():
         a = r(mesh, view, proj, lights, channels={"albedo"})
