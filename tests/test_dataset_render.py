@@ -383,7 +383,8 @@ import torchraster as tr
 from torchraster.distributed import DatasetConfig, render_dataset
 cfg = tr.load_config(sys.argv[1])
 s = render_dataset([DatasetConfig(Path(sys.argv[1]), "set", cfg)], sys.argv[2], progress=False)
-print("left", torch.distributed.is_initialized(), s.written)
+# one write (atomic on a pipe): two unbuffered ranks' print() pieces can interleave
+sys.stdout.write(f"left {torch.distributed.is_initialized()} {s.written}\\n")
 """
 
 
