@@ -426,7 +426,12 @@ RANDOM_VARIATIONS = {
                                        environment={"paths": ["dusk.hdr"]}),
     **{f"randomize.environment.{key}": _rz({"environment": {"paths": ["sky.hdr"]}},
                                            environment={"paths": ["sky.hdr"], key: value})
-       for key, value in (("rotation_deg", 90.0), ("intensity", 0.5), ("background", False))},
+       for key, value in (("rotation_deg", 90.0), ("intensity", 0.5), ("background", False),
+                          ("specular", "split_sum"), ("sun_threshold", 1.5), ("table_levels", 3),
+                          ("table_views", 3), ("table_azimuths", 4))},
+    "randomize.environment.importance_samples": _rz(
+        {"environment": {"paths": ["sky.hdr"], "specular": "importance"}},
+        environment={"paths": ["sky.hdr"], "specular": "importance", "importance_samples": 2}),
     **{f"randomize.camera.{key}": _rz({"camera": {}}, camera={key: value})
        for key, value in (("azimuth_deg", 60.0), ("elevation_deg", 40.0), ("distance", 5.0),
                           ("target", [0.2, 0.3, 0.0]), ("fov_deg", 30.0))},
@@ -565,6 +570,9 @@ VARIATIONS: dict[str, tuple[dict, dict]] = {
     "environment.sun_threshold": ({**PBR, "environment": {"path": "sky.hdr"}},
                                   {**PBR, "environment": {"path": "sky.hdr",
                                                           "sun_threshold": 1.5}}),
+    **{f"environment.{key}": ({**PBR, "environment": {"path": "sky.hdr"}},
+                              {**PBR, "environment": {"path": "sky.hdr", key: value}})
+       for key, value in (("table_levels", 3), ("table_views", 3), ("table_azimuths", 4))},
     # materials
     "materials.match": _material(match="no such material"),
     "materials.base_color": _material(base_color=[0.1, 0.2, 1.0]),

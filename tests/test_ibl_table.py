@@ -223,3 +223,25 @@ def test_float32_table_matches_float64_at_grazing_views() -> None:
     double = specular_table(env, **knobs)
     for a, b in zip(single, double, strict=True):
         assert float(((a.double() - b).abs() / b.abs()).max()) < 1e-3
+
+
+def test_yaml_table_knobs_and_randomized_specular(tmp_path) -> None:
+    import torchraster as tr
+    from torchraster.config.build import build_environment
+    from torchraster.config.variants import scene_variants
+    from torchraster.hdr_io import write_hdr
+
+    write_hdr(tmp_path / "sky.hdr", torch.rand(3, 8, 16) + 0.1)
+    text = ("cameras: [{orbit: {distance: 3}}]\nrender: {resolution: [8, 8]}\n"
+            "scene: {objects: [{primitive: sphere}]}\n%s\n")
+    cfg = tr.parse_config(text % "environment: {path: sky.hdr, table_views: 3, "
+                          "table_azimuths: 4}", "a.yaml", base_dir=tmp_path)
+    env = build_environment(cfg)
+    assert env.table_knobs == (8, 3, 4) and env.specular_mode == "table"
+    with pytest.raises(tr.ConfigError, match=r"b.yaml:4: environment.table_azimuths: expec"):
+        tr.parse_config(text % "environment: {path: sky.hdr, table_azimuths: 3}", "b.yaml",
+                        base_dir=tmp_path)
+    cfg = tr.parse_config(text % "randomize: {environment: {paths: [sky.hdr], specular: "
+                          "split_sum, table_levels: 3}}", "c.yaml", base_dir=tmp_path)
+    drawn = scene_variants(cfg)[0].config.environment
+    assert drawn.specular == "split_sum" and drawn.table_levels == 3

@@ -121,7 +121,8 @@ def build_environment(cfg: RenderFile, device: str | torch.device = "cpu"
     radiance = read_hdr(Path(e.path)).to(device)
     return Environment(radiance, yaw=math.radians(e.rotation_deg), intensity=e.intensity,
                        specular=e.specular, importance_samples=e.importance_samples,
-                       sun_threshold=e.sun_threshold)
+                       sun_threshold=e.sun_threshold, table_levels=e.table_levels,
+                       table_views=e.table_views, table_azimuths=e.table_azimuths)
 
 
 def build_fog(cfg: FogConfig) -> Fog | None:

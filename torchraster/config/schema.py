@@ -628,13 +628,11 @@ class RenderConfig(_Strict):
         return (r, r) if isinstance(r, int) else (r[0], r[1])
 
 
-class EnvironmentConfig(_Strict):
-    """An equirectangular HDR environment (``.hdr`` / ``.exr``), relative to the config."""
+class EnvironmentShadingConfig(_Strict):
+    """How an environment's specular is integrated (the knobs of
+    :class:`~torchraster.shading.ibl.Environment`), shared by ``environment`` and
+    ``randomize.environment``."""
 
-    path: FilePath
-    intensity: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 1.0
-    rotation_deg: Finite = 0.0
-    background: bool = True
     specular: Literal[SPECULAR_MODES] = Field(  # type: ignore[valid-type]
         default_of(Environment, "specular"), description="table (default: the GGX lobe "
         "pre-integrated per map, ~1 % mean error at roughness >= 0.3), split_sum (one "
@@ -648,6 +646,33 @@ class EnvironmentConfig(_Strict):
         "exact GGX BRDF: the texels near the brightest one above this many times the mean "
         "radiance (e.g. 10; none: off). Closer glossy reflections of sunny maps; not with "
         "render.ssr")
+    table_levels: Annotated[int, Field(ge=2, le=64, strict=True)] = Field(
+        default_of(Environment, "table_levels"), description="specular: table: roughness "
+        "levels from 0.3 to 1")
+    table_views: Annotated[int, Field(ge=2, le=64, strict=True)] = Field(
+        default_of(Environment, "table_views"), description="specular: table: nodes of "
+        "acos(n.v)")
+    table_azimuths: Annotated[int, Field(ge=2, le=128, strict=True)] = Field(
+        default_of(Environment, "table_azimuths"), description="specular: table: nodes of "
+        "the normal's azimuth about the reflection (even). The table builds in ~1 s a map "
+        "and process with the defaults (8, 8, 16); (6, 6, 12) in ~0.4 s at ~1.2 % instead "
+        "of ~0.9 % mean error at roughness 0.6 (docs/benchmarks.md, ibl-specular)")
+
+    @field_validator("table_azimuths")
+    @classmethod
+    def _even(cls, v: int) -> int:
+        if v % 2:
+            raise ValueError(f"expected an even number, got {v}")
+        return v
+
+
+class EnvironmentConfig(EnvironmentShadingConfig):
+    """An equirectangular HDR environment (``.hdr`` / ``.exr``), relative to the config."""
+
+    path: FilePath
+    intensity: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 1.0
+    rotation_deg: Finite = 0.0
+    background: bool = True
 
 
 def _shadow_default(name: str) -> Any:
@@ -1080,8 +1105,9 @@ class RandomLightsConfig(_Strict):
     shadows: ShadowConfig | None = None
 
 
-class RandomEnvironmentConfig(_Strict):
-    """An environment map drawn from ``paths`` (files, or folders of .hdr / .exr)."""
+class RandomEnvironmentConfig(EnvironmentShadingConfig):
+    """An environment map drawn from ``paths`` (files, or folders of .hdr / .exr); the
+    specular knobs apply to every map drawn."""
 
     paths: Annotated[list[FilePath], Field(min_length=1)]
     rotation_deg: Random = Field(default_factory=lambda: DistConfig(uniform=[0.0, 360.0]))

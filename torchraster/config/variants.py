@@ -28,6 +28,7 @@ from .schema import (
     DirectionalLightConfig,
     DistConfig,
     EnvironmentConfig,
+    EnvironmentShadingConfig,
     KeyframeConfig,
     ObjectConfig,
     RandomObjectsConfig,
@@ -149,9 +150,10 @@ def _variant(cfg: RenderFile, seed: int, index: int) -> Variant:
         files = _environment_files(cfg, env.paths)
         path = draw(Choice([str(p) for p in files]), g)
         rotation, intensity = draw(env.rotation_deg, g), draw(env.intensity, g)
+        shading = {k: getattr(env, k) for k in EnvironmentShadingConfig.model_fields}
         update["environment"] = EnvironmentConfig(
             path=resolve_path(path, cfg.base_dir), rotation_deg=float(rotation),
-            intensity=max(0.0, float(intensity)), background=env.background)
+            intensity=max(0.0, float(intensity)), background=env.background, **shading)
         drawn["environment"] = {"path": path, "rotation_deg": rotation, "intensity": intensity}
     if rz.camera is not None:
         cams, drawn["cameras"] = _cameras(cfg, rng("camera"))
