@@ -654,9 +654,9 @@ class EnvironmentShadingConfig(_Strict):
         "acos(n.v)")
     table_azimuths: Annotated[int, Field(ge=2, le=128, strict=True)] = Field(
         default_of(Environment, "table_azimuths"), description="specular: table: nodes of "
-        "the normal's azimuth about the reflection (even). The table builds in ~1 s a map "
-        "and process with the defaults (8, 8, 16); (6, 6, 12) in ~0.4 s at ~1.2 % instead "
-        "of ~0.9 % mean error at roughness 0.6 (docs/benchmarks.md, ibl-specular)")
+        "the normal's azimuth about the reflection (even). The table builds in ~0.5 s a "
+        "map and process with the defaults (8, 8, 16); (6, 6, 12) in ~0.3 s at 1.2 % "
+        "instead of 1.0 % mean error at roughness 0.6 (docs/benchmarks.md, ibl-specular)")
 
     @field_validator("table_azimuths")
     @classmethod

@@ -1059,7 +1059,7 @@ class Environment:
             pre-integrated per map into a table over reflection direction, n.v, the normal's
             azimuth about the reflection and roughness >= 0.3,
             :mod:`~torchraster.shading.ibl_table`; ~1 % mean error at roughness 0.3-1 on
-            venice_sunset_1k; built on first use in ~1 s, ~47 MB) or ``"importance"``
+            venice_sunset_1k; built on first use in ~0.5 s, ~35 MB) or ``"importance"``
             (:func:`specular_importance`:
             ``importance_samples`` filtered samples of the GGX lobe a pixel, closer to
             the true integral at high roughness; docs/benchmarks.md, ibl-specular).

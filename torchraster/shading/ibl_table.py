@@ -71,7 +71,7 @@ def table_roughness(levels: int) -> list[float]:
     return [TABLE_MIN_ROUGHNESS + k * step for k in range(levels)]
 
 
-def table_rows(roughness: float, min_rows: int = 32) -> int:
+def table_rows(roughness: float, min_rows: int = 24) -> int:
     """Rows of a level's ``h x 2h`` grid: ``max(min_rows, ceil(4.4 / r^2))``, about two
     texels per half-width of the reflected lobe (``~1.3 r^2`` rad)."""
     return max(int(min_rows), math.ceil(4.4 / max(roughness, 1e-3) ** 2))
@@ -173,7 +173,7 @@ def lobe_radiance_level(
 
 def specular_table(
     env: torch.Tensor, *, levels: int = 8, views: int = 8, azimuths: int = 16,
-    min_rows: int = 32,
+    min_rows: int = 24,
 ) -> list[torch.Tensor]:
     """The table's levels for a lat-long radiance map.
 
