@@ -208,7 +208,7 @@ def spent_text(spent: dict[int, tuple[float, float, float]], in_process: float) 
     return ("\n\nWhere a whole run's time goes (this tree; the manifest's per-view timings): "
             "the slowest view of a run is a process's first, which builds the environment's "
             "prefiltered specular chain and its lobe table (`specular: table`, the default "
-            "since 2026-11-26; ~1.4 s and ~0.9 s for this map, once per map per process: a "
+            "since 2026-11-26; ~1.4 s and ~0.5 s for this map, once per map per process: a "
             "content cache); a steady view renders in the main thread while the previous "
             "view's files are written by the writer thread, which takes one of the two cores "
             f"(the same view in-process, 1 thread, no files: {in_process * 1e3:.0f} ms).\n\n"
