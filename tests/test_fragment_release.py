@@ -148,3 +148,26 @@ def test_ssr_without_environment_reads_the_albedo_after_lighting() -> None:
     b = r(scene, view, proj, lights)
     assert "ssr" in a.plan
     torch.testing.assert_close(a.image, b.image.detach(), rtol=1e-5, atol=1e-6)
+
+
+def test_half_precision_gbuffer_gradients_saturate_instead_of_overflowing() -> None:
+    # the lighting shades a float16 G-buffer in float32; the gradients going back to the
+    # float16 channels saturate at float16's largest value (the half-precision policy of
+    # finish_low_precision) instead of overflowing to inf (and to NaN further back)
+    from torchraster.gbuffer import GBuffer
+    from torchraster.shading import shade
+    from torchraster.shading.lights import Lights, PointLights
+
+    h = torch.float16
+    normal = torch.tensor([0.0, 0.0, 1.0], dtype=h).view(1, 3, 1, 1).requires_grad_(True)
+    gb = GBuffer(position=torch.zeros(1, 3, 1, 1, dtype=h), normal=normal,
+                 albedo=torch.ones(1, 3, 1, 1, dtype=h), metallic=torch.ones(1, 1, 1, 1, dtype=h),
+                 roughness=torch.full((1, 1, 1, 1), 0.05, dtype=h),
+                 mask=torch.ones(1, 1, 1, 1, dtype=h))
+    lights = Lights(point=PointLights(position=torch.tensor([[[0.3, 0.0, 1.0]]]),
+                                      color=torch.ones(1, 1, 3),
+                                      intensity=torch.full((1, 1), 6e4)))
+    rad = shade(gb, camera_position=torch.tensor([[-0.3, 0.0, 1.0]]), lights=lights)
+    (grad,) = torch.autograd.grad(rad.float().sum(), normal)
+    assert grad.dtype == h and torch.isfinite(grad).all()
+    assert float(grad.abs().max()) == float(torch.finfo(h).max)  # saturated, not inf

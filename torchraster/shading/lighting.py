@@ -36,6 +36,7 @@ from torchraster.numerics import (
     finish_low_precision,
     safe_normalize,
     specular_f0,
+    to_compute,
 )
 from torchraster.shading.brdf import (
     MIN_COS,
@@ -286,7 +287,8 @@ def _pack_item(item, covered, dt, position, normal, albedo, metallic, roughness,
     if covered is not None:
         sel = covered[item].reshape(-1).nonzero().squeeze(1)
         flat = [t.index_select(1, sel) for t in flat]
-    pos, nrm, base, metal, rough = (t.to(dt) for t in flat)
+    # half precision: shaded in float32, gradients back saturated (to_compute)
+    pos, nrm, base, metal, rough = (to_compute(t, dt) for t in flat)
     del flat
     n = safe_normalize(nrm, dim=0)
     del nrm
@@ -481,7 +483,7 @@ def shade(
     def prep(t: torch.Tensor) -> torch.Tensor:
         # Zero uncovered pixels *before* any op ("double where"): garbage (NaN/Inf) in empty
         # G-buffer pixels can then not leak into values or gradients.
-        t = t.to(dtype=dt)
+        t = to_compute(t, dt)  # half precision: gradients back saturated
         return t if covered is None else torch.where(covered, t, 0.0)
 
     lights = lights.to(device=dev, dtype=dt)
