@@ -740,17 +740,20 @@ def scene_half(gen: torch.Generator, c: Counter) -> None:
     renderer = tr.Renderer(res, shadows=settings, raster=raster, textures=filtering)
     if renderer.raster_settings.max_batch is not None:  # two views, rendered one at a time
         view = torch.cat([view, view])
-    out = renderer(scene, view, proj, lights)
+    env_params: list[torch.Tensor] = []  # half-precision surfaces under a float32 map (IBL
+    env = _environment(gen, torch.float32, env_params) if _chance(gen, 0.4) else None
+    out = renderer(scene, view, proj, lights, env)  # in float32 for them, every mode)
     c["covered"] += int((out.alpha > 0).sum())
     c["nonfinite_image"] += _nonfinite(out.image)
     c["nonfinite_alpha"] += _nonfinite(out.alpha)
     loss = (out.image.float() * torch.randn(out.image.shape, generator=gen)).sum()
-    leaves = [positions, *textures, sun]
+    leaves = [positions, *textures, sun, *env_params]
     grads = torch.autograd.grad(loss, leaves, allow_unused=True)
     c["grad_values"] += sum(g.numel() for g in grads if g is not None)
     c["nonfinite_grad_positions"] += _nonfinite(grads[0])
     c["nonfinite_grad_material"] += sum(_nonfinite(g) for g in grads[1:3])
     c["nonfinite_grad_lights"] += _nonfinite(grads[3])
+    c["nonfinite_grad_environment"] += sum(_nonfinite(g) for g in grads[4:])
 
 
 LABELS = ["instance", "semantic", "object_coords", "distance", "amodal", "face_id", "depth"]

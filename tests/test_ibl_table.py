@@ -86,6 +86,16 @@ def test_nodes_equal_the_brute_force_sum_of_the_level_grid() -> None:
     got = lookup_specular_table(vol, blocks, _img(torch.stack(ns)), _img(torch.stack(vs)),
                                 torch.full((1, 1, 1, len(cases)), rough, dtype=D64))
     torch.testing.assert_close(got[0, :, 0].T, torch.stack(refs), rtol=1e-9, atol=0.0)
+    # the grazing node: n.v = 0, clamped to 1e-4 as shade_ibl's MIN_N_DOT_V (the lookup's
+    # coordinate of n.v = 1e-4 lies 2e-4 of a step off the node)
+    r = dirs[:, 25, 40]
+    e_t, e_p = _frame(r)
+    psi = 2 * 2 * math.pi / az
+    n = 1e-4 * r + math.sqrt(1 - 1e-8) * (math.cos(psi) * e_t + math.sin(psi) * e_p)
+    v = 2e-4 * n - r
+    got = lookup_specular_table(vol, blocks, _img(n[None]), _img(v[None]),
+                                torch.full((1, 1, 1, 1), rough, dtype=D64))[0, :, 0, 0]
+    torch.testing.assert_close(got, _lobe_mean(env, n, v, rough), rtol=1e-3, atol=0.0)
 
 
 @pytest.mark.parametrize("rough", [0.35, 0.6, 0.9])
@@ -245,3 +255,26 @@ def test_yaml_table_knobs_and_randomized_specular(tmp_path) -> None:
                           "split_sum, table_levels: 3}}", "c.yaml", base_dir=tmp_path)
     drawn = scene_variants(cfg)[0].config.environment
     assert drawn.specular == "split_sum" and drawn.table_levels == 3
+
+
+@pytest.mark.parametrize("mode", ["table", "split_sum", "importance"])
+def test_checkpointed_chunks_take_gradients_to_the_environment(mode: str) -> None:
+    # Renderer(max_batch=1) checkpoints each chunk; the environment's lazy data (chain, table,
+    # irradiance) are built before the chunks, else the recomputation records another graph
+    import trimesh
+
+    import torchraster as tr
+
+    ico = trimesh.creation.icosphere(subdivisions=1)
+    mesh = tr.Mesh(torch.tensor(ico.vertices, dtype=torch.float32), torch.tensor(ico.faces))
+    view = tr.camera.look_at([0.0, 0.4, 3.0], [0.0, 0.0, 0.0]).expand(2, 4, 4)
+    proj = tr.camera.perspective(40.0, 1.0, 0.1, 10.0)
+    rad = (torch.rand(3, 8, 16, generator=torch.Generator().manual_seed(0)) + 0.1)
+    grads = []
+    for max_batch in (1, None):
+        leaf = rad.clone().requires_grad_(True)
+        env = tr.Environment(leaf, specular=mode, table_levels=2, table_views=2,
+                             table_azimuths=2, importance_samples=2)
+        r = tr.Renderer(16, shading="pbr", raster=tr.RasterSettings(max_batch=max_batch))
+        grads.append(torch.autograd.grad(r(mesh, view, proj, None, env).image.sum(), leaf)[0])
+    torch.testing.assert_close(grads[0], grads[1], rtol=1e-4, atol=1e-6)

@@ -59,8 +59,8 @@ def safe_normalize(x: torch.Tensor, dim: int = -3, eps: float = NORMALIZE_EPS,
         x: any shape, vector components on ``dim``, e.g. ``(B, 3, H, W)`` or ``(B, V, 3)``.
         dim: the component axis.
         eps: squared length treated as zero (default :data:`NORMALIZE_EPS`).
-        inplace: scale ``x`` itself (the same products; memory) when no graph records it
-            (autograd off or ``x`` outside it) and ``x`` is in its compute dtype.
+        inplace: scale ``x`` itself (the same products; memory) when autograd is off and
+            ``x`` is in its compute dtype (else a new tensor, as without it).
 
     Returns:
         Tensor of ``x``'s shape and dtype.
@@ -71,7 +71,7 @@ def safe_normalize(x: torch.Tensor, dim: int = -3, eps: float = NORMALIZE_EPS,
     ok = sq > eps
     inv = torch.where(ok, torch.rsqrt(torch.where(ok, sq, torch.ones_like(sq))),
                       torch.zeros_like(sq))
-    if inplace and xc is x and not (torch.is_grad_enabled() and x.requires_grad):
+    if inplace and xc is x and not torch.is_grad_enabled():
         return x.mul_(inv)
     return (xc * inv).to(dtype)
 

@@ -52,7 +52,7 @@ from .motion import (
     reproject,
     validity_from,
 )
-from .numerics import finish_low_precision, safe_normalize
+from .numerics import compute_dtype, finish_low_precision, safe_normalize
 from .post.ssr import environment_specular, specular_weight
 from .raster import Fragments, antialias, antialias_topology, rasterize
 from .scene import RenderScene, as_render_scene
@@ -915,6 +915,8 @@ class Renderer(nn.Module):
             raise NotImplementedError(
                 "max_batch: an Environment with per-item radiance, rotation or intensity "
                 "cannot be split into chunks yet; use max_batch=None or a shared environment")
+        if environment is not None and torch.is_grad_enabled():  # built once, outside the
+            environment.prepare(compute_dtype(scene.positions))  # checkpointed chunks
         outs: list[RenderOutput] = []
         for start in range(0, b, self.raster_settings.max_batch):
             sl = slice(start, min(start + self.raster_settings.max_batch, b))

@@ -46,6 +46,7 @@ from .schema import (
     CameraConfig,
     ConfigError,
     DissolveConfig,
+    EnvironmentShadingConfig,
     FogConfig,
     PostConfig,
     RenderFile,
@@ -119,10 +120,9 @@ def build_environment(cfg: RenderFile, device: str | torch.device = "cpu"
     if e is None:
         return None
     radiance = read_hdr(Path(e.path)).to(device)
+    shading = {k: getattr(e, k) for k in EnvironmentShadingConfig.model_fields}  # same names
     return Environment(radiance, yaw=math.radians(e.rotation_deg), intensity=e.intensity,
-                       specular=e.specular, importance_samples=e.importance_samples,
-                       sun_threshold=e.sun_threshold, table_levels=e.table_levels,
-                       table_views=e.table_views, table_azimuths=e.table_azimuths)
+                       **shading)
 
 
 def build_fog(cfg: FogConfig) -> Fog | None:

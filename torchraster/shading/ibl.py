@@ -1330,6 +1330,26 @@ class Environment:
         out = lookup_specular_table(volume, blocks, self.to_env(n), self.to_env(v), roughness)
         return self._scale(finish_low_precision(out, n.dtype))
 
+    def prepare(self, dtype: torch.dtype) -> None:
+        """Build now what shading in ``dtype`` (the compute dtype of the surfaces) reads
+        lazily for this environment's modes: the irradiance map or SH, the extracted sun,
+        the specular chain and its atlas, the lobe table (``"table"``), the mip chain
+        (``"importance"``). Needed before checkpointed chunks (``Renderer(max_batch=...)``
+        with autograd): their recomputation in backward must record the same graph as the
+        first forward, which would otherwise build (and record) these on first use."""
+        if self.diffuse == "map":
+            self.irradiance_latlong  # noqa: B018
+        else:
+            self.sh  # noqa: B018
+        self.sun  # noqa: B018
+        self._chain_atlas(dtype)
+        if self.specular_mode == "table":
+            self.lobe_table_atlas  # noqa: B018
+        if self.specular_mode == "importance":
+            chain = [lv.to(dtype) for lv in self.mip_chain]
+            if self._mips_padded is None or self._mips_padded[0].dtype != dtype:
+                self._mips_padded = list(latlong_atlas(chain))
+
     def _chain_atlas(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
         """:attr:`specular_chain` packed by :func:`latlong_atlas` in ``dtype`` (kept)."""
         if self._spec_atlas is None or self._spec_atlas[0].dtype != dtype:

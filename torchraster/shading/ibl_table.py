@@ -38,7 +38,13 @@ import torch.nn.functional as F
 from torchraster._validate import check_tensor
 from torchraster.numerics import compute_dtype, dot, grid_sample
 from torchraster.shading.brdf import MIN_COS, MIN_ROUGHNESS
-from torchraster.texture import latlong_solid_angles, latlong_uv, pad_texture, sample_latlong
+from torchraster.texture import (
+    latlong_directions,
+    latlong_solid_angles,
+    latlong_uv,
+    pad_texture,
+    sample_latlong,
+)
 
 __all__ = [
     "TABLE_MIN_ROUGHNESS",
@@ -198,13 +204,9 @@ def specular_table(
         h = table_rows(rough, min_rows)
         if h < env.shape[-2]:
             src = F.adaptive_avg_pool2d(env, (h, 2 * h))
-        elif h > env.shape[-2] or env.shape[-1] != 2 * h:
-            d = _frame(((torch.arange(h, dtype=env.dtype, device=env.device) + 0.5)
-                        * (math.pi / h))[:, None].expand(h, 2 * h),
-                       ((torch.arange(2 * h, dtype=env.dtype, device=env.device) + 0.5)
-                        / (2 * h) - 0.5)[None, :].expand(h, 2 * h) * (2 * math.pi))[0]
-            src = sample_latlong(env, d.permute(2, 0, 1)[None].expand(env.shape[0], -1, -1,
-                                                                       -1))
+        elif h > env.shape[-2] or env.shape[-1] != 2 * h:  # bilinear, as the lookups
+            d = latlong_directions(h, 2 * h, device=env.device, dtype=env.dtype)
+            src = sample_latlong(env, d.expand(env.shape[0], -1, -1, -1))
         else:
             src = env
         out.append(lobe_radiance_level(src, rough, views, azimuths))
