@@ -17,7 +17,8 @@ LAYERS: list[set[str]] = [
     {"gbuffer", "scene", "labels", "motion", "testing"},
     {"shading"},
     {"post"},
-    {"renderer", "settings", "transparency", "background", "dissolve", "relative", "edge_aa"},
+    {"renderer", "settings", "transparency", "background", "dissolve", "relative", "low_precision",
+     "edge_aa"},
     {"config", "pipeline", "manifest", "distributed", "data", "cli", "__main__", "__init__",
      "export"},
 ]

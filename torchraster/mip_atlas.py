@@ -219,13 +219,13 @@ class _TrilinearLookup(torch.autograd.Function):
                 g, tex, grid0, 0, 1, True, [need_atlas, need_uv])
             del g
             if need_atlas:
-                grad_atlas = ga.to(atlas.dtype)
+                grad_atlas = finish_low_precision(ga, atlas.dtype)
             if need_uv:
                 outs.append(grid)
                 grads_out.append(gg)
         wrt = [t for t in leaves if t.requires_grad]
         grads = iter(torch.autograd.grad(outs, wrt, grads_out, allow_unused=True) if wrt else ())
         result = [next(grads) if t.requires_grad else None for t in leaves]
-        result = [g if g is None else g.to(t.dtype) for g, t in zip(
+        result = [g if g is None else finish_low_precision(g, t.dtype) for g, t in zip(
             result, (uv, duv_dx, duv_dy), strict=True)]
         return (grad_atlas, *result, None, None, None, None)

@@ -66,7 +66,7 @@ def safe_normalize(x: torch.Tensor, dim: int = -3, eps: float = NORMALIZE_EPS,
         Tensor of ``x``'s shape and dtype.
     """
     dtype = x.dtype
-    xc = x.to(compute_dtype(x))
+    xc = to_compute(x)
     sq = (xc * xc).sum(dim=dim, keepdim=True)
     ok = sq > eps
     inv = torch.where(ok, torch.rsqrt(torch.where(ok, sq, torch.ones_like(sq))),

@@ -34,7 +34,7 @@ import torch.nn.functional as F
 from torch import nn
 from torch.utils.checkpoint import checkpoint
 
-from . import edge_aa, relative
+from . import edge_aa, low_precision, relative
 from ._validate import check_resolution, check_tensor
 from .background import fit_background
 from .dissolve import Dissolve
@@ -738,6 +738,10 @@ class Renderer(nn.Module):
         if shift is not None:  # far from the origin: render camera-relative (relative.py)
             return relative.render(self, shift, scene, view, proj, lights, environment,
                                    channels, next_frame, previous_frame)
+        if low_precision.needs_lift(scene, view, proj, lights, {
+                "next_frame": next_frame, "previous_frame": previous_frame}):
+            return self._forward_lifted(scene, view, proj, lights, environment, channels,
+                                        next_frame, previous_frame)
         plan = self.plan(scene, lights, environment, channels)
         frames = _check_frames(plan.requested, next_frame=next_frame,
                                previous_frame=previous_frame)
@@ -903,6 +907,25 @@ class Renderer(nn.Module):
             image, alpha = F.avg_pool2d(image, s), F.avg_pool2d(alpha, s)
             outputs = outputs.downsample(s)
         return RenderOutput(image=image, alpha=alpha, gbuffer=outputs, plan=plan)
+
+    def _forward_lifted(self, scene: RenderScene, view: torch.Tensor, proj: torch.Tensor,
+                        lights: Lights | None, environment: Environment | None,
+                        channels: Iterable[str], next_frame: OtherFrame | None,
+                        previous_frame: OtherFrame | None) -> RenderOutput:
+        """``forward`` of float16 / bfloat16 inputs: rendered in float32, results cast back
+        to the positions' dtype (``low_precision``); other frames' rasterized depths are
+        stored back on the caller's frames."""
+        frames = {"next_frame": next_frame, "previous_frame": previous_frame}
+        lifted = {k: low_precision.lift_frame(f) for k, f in frames.items()}
+        out = self.forward(low_precision.lift_scene(scene), low_precision.lift(view),
+                           low_precision.lift(proj), low_precision.lift_lights(lights),
+                           environment, channels, **lifted)
+        for k, f in frames.items():
+            if isinstance(f, OtherFrame) and f.depth is None:
+                f.depth = lifted[k].depth
+        image, alpha, gbuffer = low_precision.finish(out.image, out.alpha, out.gbuffer,
+                                                     scene.positions.dtype)
+        return replace(out, image=image, alpha=alpha, gbuffer=gbuffer)
 
     def _forward_chunks(self, scene: RenderScene, view: torch.Tensor, proj: torch.Tensor,
                         lights: Lights | None, environment: Environment | None,

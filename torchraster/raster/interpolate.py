@@ -13,7 +13,7 @@ import torch
 
 from .. import frame_pool
 from .._validate import check_tensor
-from ..numerics import take_columns
+from ..numerics import compute_dtype, finish_low_precision, take_columns
 from .rasterize import PIXEL_CHUNK, Fragments, pixel_slices
 
 
@@ -130,6 +130,9 @@ class _Weigh(torch.autograd.Function):
             return None, None, None, None, None
         if pixels is not None:
             grad = grad.index_select(1, pixels)  # (C, N)
+        # half precision: sums in float32, saturated on the way out (finish_low_precision)
+        dtype, dt = table.dtype, compute_dtype(table, grad)
+        table, weights, grad = table.to(dt), weights.to(dt), grad.to(dt)
         three, n_chan, _ = table.shape
         g_table = torch.zeros_like(table) if ctx.needs_input_grad[0] else None
         g_w = torch.empty_like(weights) if ctx.needs_input_grad[1] else None
@@ -144,6 +147,9 @@ class _Weigh(torch.autograd.Function):
             if g_w is not None:
                 g = flat.index_select(1, r).view(three, n_chan, -1)
                 g_w[:, sl] = (g * gr).sum(1)
+        if dtype != dt:
+            g_table = None if g_table is None else finish_low_precision(g_table, dtype)
+            g_w = None if g_w is None else finish_low_precision(g_w, dtype)
         return g_table, g_w, None, None, None
 
 
