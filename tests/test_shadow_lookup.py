@@ -5,6 +5,7 @@ by one."""
 
 from __future__ import annotations
 
+import dataclasses
 import types
 
 import pytest
@@ -109,3 +110,43 @@ def test_cube_face_is_the_dominant_axis_with_argmax_ties():
     axis = d.abs().argmax(-1)
     want = axis * 2 + (d.gather(1, axis[:, None])[:, 0] < 0).long()
     assert torch.equal(face[:, 0], want)
+
+
+@pytest.mark.parametrize("filt", ["pcf", "pcss"])
+def test_culled_views_read_one_shared_empty_slot(filt, monkeypatch):
+    # render_shadow_maps leaves views nobody reads (culled cube faces) at +inf; the padded
+    # copy holds only the rendered maps and one +inf slot for the rest: the same bits as
+    # padding every map, and the unpadded lookup up to float rounding
+    g, p, n, recv, view = _setup("point", filt)
+    needed = torch.zeros(g.view.shape[:3], dtype=torch.bool)
+    needed[0, 0, :3] = needed[1, 1, 2:] = True  # 7 of 24 maps
+    g.depth = torch.where(needed[..., None, None], g.depth, float("inf"))
+    padded, slot = shadows._pad_rendered_maps(dataclasses.replace(g, needed=needed))
+    sp = g.settings.map_size + 4
+    assert padded.numel() == 8 * sp * sp  # 7 rendered maps and the empty slot
+    assert slot.view(2, 2, 6)[needed].tolist() == list(range(7))
+    assert bool((slot.view(2, 2, 6)[~needed] == 7).all())
+    compact = shadow_visibility(dataclasses.replace(g, needed=needed), p, n, recv, view)
+    every = shadow_visibility(g, p, n, recv, view)  # every map padded
+    assert torch.equal(compact, every)
+    monkeypatch.setattr(shadows, "PAD_MAP_ELEMENTS", 0)
+    general = shadow_visibility(dataclasses.replace(g, needed=needed), p, n, recv, view)
+    torch.testing.assert_close(compact, general, atol=0.02, rtol=0)
+
+
+@pytest.mark.parametrize("filt", ["pcf", "pcss"])
+def test_lights_looked_up_in_slices_that_fit_the_padding_bound(filt, monkeypatch):
+    # when the rendered maps of all lights padded exceed PAD_MAP_ELEMENTS, the lights are
+    # looked up in slices whose padded maps fit (padded lookups, not the unpadded ones):
+    # the same bits as all lights at once
+    g, p, n, recv, view = _setup("point", filt)  # 2 lights x 2 items x 6 faces of 64²
+    once = shadow_visibility(g, p, n, recv, view)
+    one_light = (12 + 1) * 68 * 68  # a light's 12 maps padded and the empty slot
+    monkeypatch.setattr(shadows, "PAD_MAP_ELEMENTS", one_light)
+    assert shadows._light_slices(g) == [slice(0, 1), slice(1, 2)]
+    sliced = shadow_visibility(g, p, n, recv, view)
+    assert torch.equal(sliced, once)
+    monkeypatch.setattr(shadows, "PAD_MAP_ELEMENTS", one_light - 1)  # nothing fits:
+    assert shadows._light_slices(g) == [slice(0, 1), slice(1, 2)]  # unpadded, by light
+    torch.testing.assert_close(shadow_visibility(g, p, n, recv, view), once, atol=0.02,
+                               rtol=0)
