@@ -36,6 +36,12 @@ def _setup(kind: str, filt: str, batch: int = 2, normal_bias: float = 0.0, light
     if kind == "directional":
         g = directional_views(torch.tensor([[[0.4, -1.0, 0.3], [-0.3, -1.0, 0.1]]])[:, :lights]
                               .expand(batch, lights, 3), st, bounds, view, proj)
+    elif kind == "spot":  # one map per light
+        pos_l = torch.tensor([[[1.0, 2.0, 0.5], [-0.8, 1.6, 0.2]]])[:, :lights] + torch.tensor(
+            [0.3, 0.0, 0.0]) * torch.arange(batch)[:, None, None]  # each item its own
+        g = local_views("spot", pos_l.expand(batch, lights, 3),
+                        (torch.tensor([0.0, 0.5, 0.0]) - pos_l).expand(batch, lights, 3),
+                        torch.full((batch, lights), 0.7), st, bounds)
     else:
         g = local_views("point", torch.tensor([[[1.0, 2.0, 0.5], [-0.8, 1.6, 0.2]]])[:, :lights]
                         .expand(batch, lights, 3), None, None, st, bounds)
@@ -69,7 +75,7 @@ def test_fast_paths_agree_with_general_ones(kind, filt, normal_bias, monkeypatch
     torch.testing.assert_close(fast, general, atol=0.02, rtol=0)
 
 
-@pytest.mark.parametrize("kind", ["point", "directional"])
+@pytest.mark.parametrize("kind", ["point", "directional", "spot"])
 def test_batch_equals_items_one_by_one(kind):
     g, p, n, recv, view = _setup(kind, "pcf")
     both = shadow_visibility(g, p, n, recv, view)

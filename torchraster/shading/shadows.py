@@ -1297,10 +1297,11 @@ def _select_view(g: ShadowMaps, p: torch.Tensor, item: torch.Tensor,
 
 
 def _affine(mats: torch.Tensor, x: torch.Tensor, sel: torch.Tensor, translate: bool,
-            by_light: bool = False) -> torch.Tensor:
+            first: int | None = None) -> torch.Tensor:
     """``mats[sel] @ (x, 1)`` (or ``@ (x, 0)`` without ``translate``): ``(P, Ls, R)`` rows
     of the ``(M, R, 4)`` matrices ``sel`` ``(P, Ls)`` applied to points ``x`` ``(P, 3)``;
-    ``by_light``: ``sel[:, l] == l`` (one view per light, one batch item: M = Ls)."""
+    ``first``: ``sel[:, l] == first + l`` (one view per light, receivers of one batch item:
+    the Ls matrices broadcast, no gather) or None."""
     # elementwise products in a fixed order (not a BLAS product, whose rounding depends on
     # the matrix shapes): any batch size gives the same bits per receiver
     r = mats.shape[1]
@@ -1311,10 +1312,11 @@ def _affine(mats: torch.Tensor, x: torch.Tensor, sel: torch.Tensor, translate: b
     # (P, Ls, R, 4), 4x with a single matrix (not gathered, unless it needs a gradient: the
     # sum of an expand's gradient has another order than the gather's)
     cols = mats.permute(2, 1, 0).reshape(4 * r, -1)  # (4R, M)
-    if (cols.shape[1] == 1 or by_light) and not (torch.is_grad_enabled()
-                                                 and mats.requires_grad):
-        sub = cols.view(4, r, 1, -1).expand(4, r, *sel.shape)  # no gather (~10 ms a
-        # chunk of 16384 receivers x 16 lights)
+    if (cols.shape[1] == 1 or first is not None) and not (torch.is_grad_enabled()
+                                                          and mats.requires_grad):
+        if cols.shape[1] > 1:  # no gather (~10 ms a chunk of 16384 receivers x 16 lights)
+            cols = cols[:, first:first + sel.shape[1]]
+        sub = cols.view(4, r, 1, -1).expand(4, r, *sel.shape)
     else:
         sub = cols.index_select(1, sel.flatten()).view(4, r, *sel.shape)
     xs = x.T[:, None, :, None]  # (3, 1, P, 1)
@@ -1323,12 +1325,13 @@ def _affine(mats: torch.Tensor, x: torch.Tensor, sel: torch.Tensor, translate: b
 
 
 def _project(g: ShadowMaps, p: torch.Tensor, n: torch.Tensor, item: torch.Tensor,
-             view_idx: torch.Tensor):
+             view_idx: torch.Tensor, item0: int | None = None):
     """Map coordinates of receivers: texel x, y ``(P, Ls)`` (continuous, texel centres at
     integers), receiver depth with bias ``(P, Ls)``, texel size at the receiver (m), the
     flat map index ``(P, Ls)``, validity and the slope-scaled depth ramp ``(P, Ls)`` (m per
     texel of lookup offset: a filter tap ``r`` texels away compares against the receiver's
-    depth minus ``r`` ramps, so a tilted receiver does not shadow itself)."""
+    depth minus ``r`` ramps, so a tilted receiver does not shadow itself). ``item0``: the
+    batch item of every receiver, when they are of one item (else None)."""
     n_l, nv = g.view.shape[1], g.view.shape[2]
     size = g.settings.map_size
     v_safe = view_idx.clamp_min(0)
@@ -1355,13 +1358,13 @@ def _project(g: ShadowMaps, p: torch.Tensor, n: torch.Tensor, item: torch.Tensor
     # view-space z and clip x, y, w of every receiver: rows of view and proj @ view
     view = g.view.reshape(-1, 4, 4)
     mats = torch.cat([view[:, 2:3], (g.proj.reshape(-1, 4, 4) @ view)[:, (0, 1, 3)]], 1)
-    by_light = g.layout == "single" and g.view.shape[0] == 1
-    zc = _affine(mats, p, sel, True, by_light)  # (P, Ls, 4): z, clip x, y, w
+    first = None if g.layout != "single" or item0 is None else item0 * n_l  # nv = 1
+    zc = _affine(mats, p, sel, True, first)  # (P, Ls, 4): z, clip x, y, w
     depth = -zc[..., 0]
     world_texel = texel * depth.abs() if g.perspective else texel
     s = g.settings
     if s.normal_bias:  # receiver moved along its normal (the transforms are affine)
-        zc = zc + _affine(mats, n, sel, False, by_light) * (
+        zc = zc + _affine(mats, n, sel, False, first) * (
             s.normal_bias * world_texel)[..., None]
     w = zc[..., 3]
     w_safe = torch.where(w.abs() > 1e-12, w, torch.ones_like(w))
@@ -1638,13 +1641,13 @@ def _lights_of(g: ShadowMaps, sl: slice) -> ShadowMaps:
 
 
 def _visibility_of_view(g: ShadowMaps, p, n, item, view_idx, padded=None, pixel=None,
-                        slot=None) -> torch.Tensor:
+                        slot=None, item0=None) -> torch.Tensor:
     """``(P, Ls)`` visibility of receivers in the views ``view_idx`` ``(P, Ls)``;
     ``padded``, ``slot``: :func:`_pad_rendered_maps` of ``g`` (PCF / PCSS) or None;
     ``pixel``: ``(P,)`` world size of a frame pixel at each receiver (``pixel_radius``)."""
     s = g.settings
     size = s.map_size
-    tx, ty, z_ref, world_texel, sel, valid, ramp = _project(g, p, n, item, view_idx)
+    tx, ty, z_ref, world_texel, sel, valid, ramp = _project(g, p, n, item, view_idx, item0)
     if s.filter == "vsm":
         maps = g.depth.reshape(-1, 2, size * size)
         m = _bilinear(maps, sel, tx, ty, size)
@@ -1784,8 +1787,14 @@ def shadow_visibility(g: ShadowMaps, position: torch.Tensor, normal: torch.Tenso
         g = replace(g, depth=g.depth.contiguous())  # a light slice: the maps read as
         # (M, S*S) below, gathered once here, not by every chunk's reshape
     parts = []
-    for k in range(0, pix.numel(), per):
-        idx = pix[k:k + per]
+    # chunks of at most `per` receivers that do not straddle batch items (pix is sorted)
+    ends = torch.searchsorted(pix, torch.arange(1, b + 1, device=pix.device) * (h * w))
+    cuts, k = [], 0
+    for i, end in enumerate(ends.tolist()):
+        cuts += [(j, min(j + per, end), i) for j in range(k, end, per)]
+        k = end
+    for k, stop, item0 in cuts:
+        idx = pix[k:stop]
         p, n = p_all.index_select(1, idx).T, n_all.index_select(1, idx).T  # (P, 3)
         item = torch.div(idx, h * w, rounding_mode="floor")
         cam_depth = None
@@ -1794,14 +1803,14 @@ def shadow_visibility(g: ShadowMaps, position: torch.Tensor, normal: torch.Tenso
             cam_depth = -((cv[:, 2, :3] * p).sum(-1) + cv[:, 2, 3]).detach()
         view_idx, t = _select_view(g, p, item, cam_depth)
         px = None if px_all is None else px_all.index_select(0, idx)
-        vis = _visibility_of_view(g, p, n, item, view_idx, padded, px, slot)
+        vis = _visibility_of_view(g, p, n, item, view_idx, padded, px, slot, item0)
         if g.layout == "cascades" and bool((t > 0).any()):
             nxt = torch.where(t > 0, (view_idx + 1).clamp_max(g.view.shape[2] - 1), view_idx)
             if not bool(g.rendered.all()):
                 nxt = torch.where(g.rendered.index_select(0, nxt.clamp_min(0).flatten()).view_as(
                     nxt), nxt, view_idx)
-            vis = torch.lerp(vis, _visibility_of_view(g, p, n, item, nxt, padded, px, slot),
-                             t)
+            vis = torch.lerp(vis, _visibility_of_view(g, p, n, item, nxt, padded, px, slot,
+                                                      item0), t)
         parts.append(vis)
     vis = torch.cat(parts)
     vis = 1 - g.settings.intensity * (1 - vis)
