@@ -57,7 +57,9 @@ zero-area triangle), rendered forward and backward through ``tr.Renderer``:
   filter, antialiasing on or off, else edge antialiasing (``edge_supersample`` 1 to 3),
   in 40 % of the scenes under a hostile float32 environment (every specular mode).
 - far: the stage, its cameras (batch 1-2) and its lights (a sun with 1-3 cascades, a spot
-  and a point light, shadows of a random filter) moved together by 0 to 1e7 m in a random
+  and two point lights, shadows of a random filter; in 30 % of the scenes a bound on the
+  lookups' padded maps that the point lights' maps do not fit together, so they are looked
+  up in slices, or that nothing fits) moved together by 0 to 1e7 m in a random
   direction (the hard case of camera-relative rendering), float64 world positions (float32
   in a quarter of the scenes: rounded already, checked for NaN/Inf only), fog (its base
   height moved alike) or a dissolve (offset a multiple of the noise period) at random,
@@ -104,6 +106,7 @@ from torchraster.motion import OtherFrame
 from torchraster.numerics import to_compute
 from torchraster.raster import rasterize_coverage
 from torchraster.renderer import _clip_positions  # the renderer's own clip positions
+from torchraster.shading import shadows
 from torchraster.testing.reference_raster import (
     look_at_matrix,
     perspective_matrix,
@@ -898,8 +901,9 @@ def scene_motion(gen: torch.Generator, scene: tr.RenderScene, c: Counter) -> Non
 
 def _far_lights(gen: torch.Generator, offset: torch.Tensor, leaves: list[torch.Tensor]
                 ) -> tr.Lights:
-    """A sun (1-3 cascades), a spot and a point light, all casting shadows of one random
-    filter, float64; the local lights placed relative to ``offset`` (leaves: gradients)."""
+    """A sun (1-3 cascades), a spot and two point lights (one group: looked up in slices
+    under a small padding bound), all casting shadows of one random filter, float64; the
+    local lights placed relative to ``offset`` (leaves: gradients)."""
     d = torch.float64
     filt = _pick(gen, tr.shading.shadows.FILTERS)
     size = _pick(gen, (32, 128))
@@ -925,9 +929,10 @@ def _far_lights(gen: torch.Generator, offset: torch.Tensor, leaves: list[torch.T
                                                                      dtype=d),
                            one, torch.full((1, 1), 20.0, dtype=d), cast_shadows=yes,
                            shadow=local_s),
-        point=tr.PointLights((point + offset)[None, None], one,
-                             torch.full((1, 1), 5.0, dtype=d), cast_shadows=yes,
-                             shadow=local_s))
+        point=tr.PointLights(torch.stack([point, point * torch.tensor(
+            [-1.0, 1.0, -1.0], dtype=d)])[None] + offset, one.expand(1, 2, 3),
+                             torch.full((1, 2), 5.0, dtype=d),
+                             cast_shadows=torch.tensor([[True, True]]), shadow=local_s))
 
 
 def scene_far(gen: torch.Generator, c: Counter) -> None:
@@ -959,6 +964,9 @@ def scene_far(gen: torch.Generator, c: Counter) -> None:
               dissolve=dissolve)
     outs = []
     seed = int(torch.randint(0, 2**31, (1,), generator=gen))  # the same lights twice
+    # sometimes a bound on the lookups' padded maps that the two point lights' maps do not
+    # fit together (looked up in slices, shadows._light_slices) or that nothing fits
+    bound = _pick(gen, (0, 20000, 200000)) if _chance(gen, 0.3) else None
     for shift in (offset, torch.zeros(3, dtype=torch.float64)):
         positions = (base + shift).to(dtype).requires_grad_(True)
         leaves = [positions]
@@ -970,8 +978,13 @@ def scene_far(gen: torch.Generator, c: Counter) -> None:
             view = view.float()  # the plain float32 render at the origin
         scene = tr.RenderScene(positions, faces, uvs=uvs.float(), face_material=face_material,
                                materials=[tr.Material(), tr.Material(roughness_factor=0.3)])
-        out = tr.Renderer(res, fog=f, **kw)(scene, view, proj, lights,
-                                            channels=("face_id", "position"))
+        default_bound = shadows.PAD_MAP_ELEMENTS
+        shadows.PAD_MAP_ELEMENTS = default_bound if bound is None else bound
+        try:
+            out = tr.Renderer(res, fog=f, **kw)(scene, view, proj, lights,
+                                                channels=("face_id", "position"))
+        finally:
+            shadows.PAD_MAP_ELEMENTS = default_bound
         c["covered"] += int((out.alpha > 0).sum())
         c["nonfinite_image"] += _nonfinite(out.image)
         c["nonfinite_alpha"] += _nonfinite(out.alpha)
