@@ -827,6 +827,11 @@ class Renderer(nn.Module):
                 plan.ssr or plan.fog or plan.edge_supersample > 1)
             radiance, coverage = radiance_of(gb, frags.face_id, last_read=last), gb.mask
             transmittance = 1 - coverage
+            if not (plan.ssr or plan.fog or plan.edge_supersample > 1):  # nothing reads the
+                # surface frames again: only the outputs, mask and alpha stay alive (memory:
+                # with autograd 36 B/px of position, normal and albedo at the composite)
+                keep = set(plan.requested) | {"mask", "alpha"}
+                gb = gbs[0] = gb.replace(**{ch: None for ch in gb.channels() if ch not in keep})
         else:
             modes, cutoffs = face_alpha_modes(scene.materials, scene.face_material,
                                               scene.faces.shape[0], positions.device)

@@ -364,18 +364,18 @@ def _unpack_items(acc, packed, shape, like):
     """``(B, 3, H, W)`` image of packed per-item radiance (0 at uncovered pixels), recorded
     by autograd (without a graph, :func:`shade` scatters into one frame in place)."""
     b, _, h, w = shape
-    images = []
-    for rad, (sel, *attrs) in zip(acc, packed, strict=True):
+    # every item written in place into one frame (no per-item frames and their stacked
+    # copy, 24 B/px alive at the grad-mode peak); unlike index_copy_, indexed assignment
+    # does not keep ``rad`` for backward (memory)
+    frame = like.new_zeros(b, 3, h * w)
+    for item, (rad, (sel, *attrs)) in enumerate(zip(acc, packed, strict=True)):
         if rad is None:  # unlit: 0, still connected to the inputs (zero gradients)
-            images.append(like.new_zeros(3, h * w) + sum(t.sum() for t in attrs) * 0.0)
+            frame[item] += sum(t.sum() for t in attrs) * 0.0
         elif sel is None:
-            images.append(rad)
-        else:  # in place into a fresh frame; unlike index_copy_, indexed assignment does
-            # not keep ``rad`` for backward (memory)
-            image = rad.new_zeros(3, h * w)
-            image[:, sel] = rad
-            images.append(image)
-    return torch.stack(images).view(b, 3, h, w)
+            frame[item] = rad
+        else:
+            frame[item, :, sel] = rad
+    return frame.view(b, 3, h, w)
 
 
 def shade(
