@@ -150,3 +150,21 @@ def test_interpolate_half_backward_sums_in_float32(dtype):
     (val.float() * 60000.0).sum().backward()
     assert torch.isfinite(attrs.grad).all() and torch.isfinite(clip.grad).all()
     assert attrs.grad.dtype == dtype
+
+
+def test_renderer_half_lights_with_float32_positions():
+    # only the lights in float16: results in the positions' dtype (float32),
+    # the light's gradient that of the float32 render, saturated once to float16
+    grads = []
+    for dt in (torch.float16, torch.float32):
+        leaves, (scene, view, proj, _, env) = _half_scene(torch.float32, 1.0)
+        intensity = torch.full((1, 1), 3.0, dtype=dt, requires_grad=True)
+        lights = tr.Lights(directional=tr.DirectionalLights(
+            leaves["sun"].detach().to(dt), torch.ones(1, 1, 3, dtype=dt), intensity,
+            cast_shadows=torch.tensor([[True]])))
+        out = tr.Renderer((24, 24))(scene, view, proj, lights, env)
+        assert out.image.dtype == torch.float32
+        (out.image * 1e5).sum().backward()
+        grads.append(intensity.grad)
+    assert float(grads[1]) > 65504  # beyond float16: saturated, not Inf
+    assert torch.equal(grads[0], grads[1].clamp(max=65504).half())
