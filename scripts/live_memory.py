@@ -35,12 +35,15 @@ class LiveBytes(TorchDispatchMode):
         self.total = self.peak = 0
         self.where: tuple[str, list[str]] = ("", [])
         self.largest: list[int] = []
+        self.origin: dict[int, str] = {}
+        self.alive: list[tuple[int, str]] = []
 
     def _release(self, key: int) -> None:
         self.refs[key] -= 1
         if self.refs[key] == 0:
             self.total -= self.sizes.pop(key)
             del self.refs[key]
+            self.origin.pop(key, None)
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):  # noqa: ANN001, ANN204
         out = func(*args, **(kwargs or {}))
@@ -51,6 +54,9 @@ class LiveBytes(TorchDispatchMode):
                 if key == 0:
                     continue
                 if key not in self.refs:
+                    frames = [f"{f.filename.split('torchraster/')[-1]}:{f.lineno}"
+                              for f in traceback.extract_stack() if "torchraster/" in f.filename]
+                    self.origin[key] = f"{func} " + " < ".join(frames[::-1][:3])
                     self.refs[key] = 0
                     self.sizes[key] = storage.nbytes()
                     self.total += storage.nbytes()
@@ -62,6 +68,8 @@ class LiveBytes(TorchDispatchMode):
                      for f in traceback.extract_stack() if "torchraster/" in f.filename]
             self.where = (str(func), stack[-10:])
             self.largest = sorted(self.sizes.values(), reverse=True)[:12]
+            self.alive = sorted(((self.sizes[k], self.origin.get(k, "?")) for k in self.sizes),
+                                reverse=True)
         return out
 
 
@@ -77,6 +85,9 @@ def main() -> None:
     ap.add_argument("--backward", action="store_true",
                     help="forward + backward to the vertex positions (as bench_memory's "
                     "fwd+bwd rows)")
+    ap.add_argument("--detail", action="store_true",
+                    help="list every storage alive at the peak with the op and the "
+                    "torchraster lines that made it")
     args = ap.parse_args()
     _, scene, view, proj, lights = bench_memory._scene(args.res, args.batch, args.lights)
     renderer = tr.Renderer((args.res, args.res), shading="pbr")
@@ -87,12 +98,25 @@ def main() -> None:
         live = LiveBytes()
         with live:
             loss = renderer(scene, view, proj, lights).image.square().mean()
+            forward = (live.peak, live.where)
             if args.backward:
                 loss.backward()
     px = args.batch * args.res * args.res
+    if args.backward:
+        print(f"forward's live peak {forward[0] / px:.1f} B/px at {forward[1][0]}: "
+              + " < ".join(forward[1][1][::-1][:3]))
     print(f"live peak {live.peak / px:.1f} B/px at {live.where[0]}")
     print("\n".join("  " + s for s in live.where[1]))
     print("largest storages alive there (B/px):", [round(s / px, 1) for s in live.largest])
+    if args.detail:
+        groups: dict[str, list[int]] = {}
+        for size, origin in live.alive:
+            groups.setdefault(origin, []).append(size)
+        print("storages alive at the peak by the op and torchraster lines that made them "
+              "(B/px, count):")
+        for origin, sizes in sorted(groups.items(), key=lambda g: -sum(g[1])):
+            if sum(sizes) / px >= 0.5:
+                print(f"  {sum(sizes) / px:6.1f} {len(sizes):4d}  {origin}")
 
 
 if __name__ == "__main__":

@@ -33,7 +33,10 @@ zero-area triangle), rendered forward and backward through ``tr.Renderer``:
   degrees) and from below it, supersampling, SSAO, every texture filter, every shading
   model, float64. These four kinds draw edge antialiasing (``edge_supersample`` 2 or
   3) in 30 % of the scenes where it is implemented (opaque materials, no SSAO, SSR, fog
-  or dissolve).
+  or dissolve). Half of their scenes ask for every channel of the frame, half for some
+  label channels only, so the surface channels only the lighting reads stay packed
+  (``plan.packed``); half of those are rendered again with every channel and must give
+  the same image bit for bit ("packed surface differs").
 - labels: the label channels (instance, semantic, object_coords, distance, amodal, face_id)
   of the same stage as three objects, in float32, float64, float16 or bfloat16, supersampled
   1x to 3x, batch 1-2 (with face_ranges dropping an object), sometimes a MASK cut-out; the
@@ -413,11 +416,13 @@ R_COLUMNS = [
     ("grad_values", "gradient values checked"), ("label_errors", "label errors"),
     ("motion_errors", "motion errors"), ("far_errors", "far-away errors"),
     ("nograd_differs", "no-grad render differs"),
+    ("packed", "packed surface compared"),
+    ("packed_differs", "packed surface differs from frames"),
     ("motion_f16_overflow", "float16 flow grad overflow (known, not counted)"),
     ("rejected", "rejected (ValueError/TypeError)"), ("exceptions", "exceptions"),
 ]
 R_PROBLEMS = {key for key, _ in R_COLUMNS} - {"scenes", "covered", "grad_values", "rejected",
-                                               "motion_f16_overflow"}
+                                               "motion_f16_overflow", "packed"}
 
 
 def _pick(gen: torch.Generator, options: tuple | list):
@@ -607,6 +612,7 @@ def _random_views(gen: torch.Generator, b: int, dtype: torch.dtype
 
 
 #: Channels that need no other frame.
+SURFACE_CHANNELS = ("position", "normal", "albedo", "metallic", "roughness")
 ONE_FRAME_CHANNELS = tuple(ch for ch in tr.CHANNELS if not ch.startswith("flow")
                            and ch != "motion")
 
@@ -674,18 +680,28 @@ def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
         res, shading=tr.ShadingSettings(shading, multiscatter=multiscatter or shading != "pbr"),
         raster=raster, textures=textures, ssao=ssao, ssr=ssr, fog=fog, dissolve=dissolve,
         background=tr.BackgroundSettings(environment=_chance(gen, 0.5)))
-    # every channel of one frame (the flow channels need another: the motion kind draws them)
-    out = renderer(scene, view, proj, lights, env, channels=ONE_FRAME_CHANNELS)
+    # every channel of one frame (the flow channels need another: the motion kind draws
+    # them), or half of the time only label channels, so that the surface channels only the
+    # lighting reads stay packed (plan.packed) where the plan allows
+    channels = ONE_FRAME_CHANNELS if _chance(gen, 0.5) else tuple(
+        ch for ch in ONE_FRAME_CHANNELS if ch not in SURFACE_CHANNELS and _chance(gen, 0.5))
+    out = renderer(scene, view, proj, lights, env, channels=channels)
     c["covered"] += int((out.alpha > 0).sum())
     c["nonfinite_image"] += _nonfinite(out.image)
     c["nonfinite_alpha"] += _nonfinite(out.alpha)
     c["nonfinite_gbuffer"] += sum(_nonfinite(v) for v in out.gbuffer.values())
     if _chance(gen, 0.25):  # the no-grad path: frames finished in place, fragments released
         with torch.no_grad():
-            again = renderer(scene, view, proj, lights, env, channels=ONE_FRAME_CHANNELS)
+            again = renderer(scene, view, proj, lights, env, channels=channels)
         c["nonfinite_image"] += _nonfinite(again.image)
         c["nograd_differs"] += int(not torch.allclose(again.image, out.image.detach(),
                                                       rtol=1e-3, atol=1e-5, equal_nan=True))
+    if out.plan.packed and _chance(gen, 0.5):  # packed surface = the frames' (requested),
+        framed = renderer(scene, view, proj, lights, env,  # bit for bit
+                          channels=ONE_FRAME_CHANNELS).image.detach()
+        c["packed_differs"] += int(not torch.allclose(framed, out.image.detach(), rtol=0,
+                                                      atol=0, equal_nan=True))
+        c["packed"] += 1
     loss = (out.image * torch.randn(out.image.shape, generator=gen, dtype=dtype)).sum()
     for v in out.gbuffer.values():
         if v.is_floating_point() and v.requires_grad:

@@ -59,6 +59,7 @@ from .material import Material
 from .mip_atlas import MipAtlas
 from .numerics import safe_normalize
 from .raster import Fragments, interpolate_packed, to_image
+from .raster.interpolate import scatter_image
 from .texture import MipTexture
 
 #: Channel name -> number of image channels C ("N": one per object, known per scene).
@@ -75,6 +76,9 @@ CHANNELS = tuple(CHANNEL_SIZES)
 LABEL_CHANNELS = frozenset({
     "face_id", "instance", "semantic", "object_coords", "distance", "amodal",
     "flow_forward", "flow_backward", "flow_forward_valid", "flow_backward_valid", "motion"})
+#: Channels :func:`geometry_pass` can return packed (:class:`PackedChannels`).
+PACKABLE_CHANNELS = frozenset({"position", "normal", "albedo", "alpha", "metallic", "roughness",
+                               "ao", "emissive"})
 #: Channels that are not floating point.
 _INTEGER_CHANNELS = {"face_id", "mask", "instance", "semantic", "amodal"}
 #: Channels computed from the visible face's identity (``face_object``).
@@ -83,6 +87,42 @@ _MATERIAL_CHANNELS = {"albedo", "alpha", "metallic", "roughness", "ao", "emissiv
 _SLOTS = {"albedo": "base_color", "alpha": "base_color", "metallic": "metallic_roughness",
           "roughness": "metallic_roughness", "ao": "occlusion", "emissive": "emissive",
           "normal": "normal"}
+
+
+@dataclass(eq=False)
+class PackedChannels:
+    """G-buffer channels of the covered pixels only, kept packed instead of as images.
+
+    ``values[name]`` is ``(C, N)`` (C from :data:`CHANNEL_SIZES`), column k the pixel at flat
+    index ``pixels[k]`` = b*H*W + i*W + j, ``pixels`` ``(N,)`` int64 in ascending order (so
+    each batch item's pixels are one run of columns). :func:`geometry_pass` returns the
+    channels named in its ``packed`` argument this way (memory: no ``(B, C, H, W)`` frame
+    for a channel that only :func:`~torchraster.shading.shade` reads, which lights the
+    covered pixels packed anyway); :meth:`image` makes the frame when one is needed.
+    """
+
+    pixels: torch.Tensor
+    values: dict[str, torch.Tensor]
+
+    def __post_init__(self) -> None:
+        check_tensor("PackedChannels.pixels", self.pixels, ("N",), integer=True)
+        n = self.pixels.shape[0]
+        for name, value in self.values.items():
+            if name not in PACKABLE_CHANNELS:
+                raise ValueError(f"PackedChannels.values: {name!r} is not one of "
+                                 f"{sorted(PACKABLE_CHANNELS)}")
+            check_tensor(f"PackedChannels.values[{name!r}]", value, (CHANNEL_SIZES[name], n),
+                         floating=True)
+
+    def image(self, name: str, shape: tuple[int, int, int]) -> torch.Tensor:
+        """Channel ``name`` as a ``(B, C, H, W)`` image of ``shape`` (B, H, W), 0 where not
+        covered (differentiable with respect to the packed values)."""
+        return scatter_image(self.values[name], self.pixels, shape)
+
+    def item_starts(self, b: int, h: int, w: int) -> list[int]:
+        """First column of each batch item and N: ``(B + 1)`` ints."""
+        edges = torch.arange(b + 1, device=self.pixels.device) * (h * w)
+        return torch.searchsorted(self.pixels, edges).tolist()
 
 
 @dataclass(eq=False)
@@ -124,6 +164,9 @@ class GBuffer(Mapping):
     flow_forward_valid: torch.Tensor | None = None
     flow_backward_valid: torch.Tensor | None = None
     motion: torch.Tensor | None = None
+    #: channels held packed (covered pixels only) instead of as images; not a channel
+    #: itself (not listed, iterated or mapped), read by ``shade`` (see :class:`PackedChannels`)
+    packed: PackedChannels | None = None
 
     def __post_init__(self) -> None:
         size = None
@@ -157,7 +200,8 @@ class GBuffer(Mapping):
 
     def require(self, *names: str, by: str) -> None:
         """Raise a ValueError naming the missing channels that ``by`` needs."""
-        missing = [n for n in names if getattr(self, n) is None]
+        missing = [n for n in names if getattr(self, n) is None and not (
+            self.packed is not None and n in self.packed.values)]
         if missing:
             raise ValueError(f"{by}: needs G-buffer channel(s) {missing}; the GBuffer has "
                              f"{self.channels()}")
@@ -285,6 +329,7 @@ def geometry_pass(
     object_category: torch.Tensor | None = None,
     object_coords: torch.Tensor | None = None,
     release_derivatives: bool = False,
+    packed: Iterable[str] = (),
 ) -> GBuffer:
     """Compute the requested G-buffer channels (see the module table).
 
@@ -308,11 +353,28 @@ def geometry_pass(
         object_coords: ``(B, V, 3)`` or ``(V, 3)`` NOCS coordinates (``object_coords``).
         release_derivatives: drop ``frags``' barycentric derivatives once the textures are
             sampled (memory: the caller reads them no more).
+        packed: requested channels among :data:`PACKABLE_CHANNELS` to return packed
+            (``GBuffer.packed``, :class:`PackedChannels`, covered pixels only) instead of
+            as images (memory: for channels only ``shade`` reads).
 
     Returns:
-        A :class:`GBuffer` holding exactly the requested channels, each ``(B, C, H, W)``.
+        A :class:`GBuffer` holding exactly the requested channels, each ``(B, C, H, W)``
+        (those named in ``packed``: ``(C, N)`` in ``GBuffer.packed``).
     """
     channels = check_channels(channels)
+    keep_packed = set(packed)
+    if not keep_packed <= channels & PACKABLE_CHANNELS:
+        raise ValueError(f"packed: {sorted(keep_packed - (channels & PACKABLE_CHANNELS))} are "
+                         f"not requested channels among {sorted(PACKABLE_CHANNELS)}")
+    held: dict[str, torch.Tensor] = {}
+
+    def put(ch: str, values: torch.Tensor) -> None:
+        """Channel ``ch`` from its packed ``(C, N)`` values: kept packed or as an image."""
+        if ch in keep_packed:
+            held[ch] = values
+        else:
+            out[ch] = to_image(values, frags)
+
     need = required_inputs(channels, materials)
     out: dict[str, torch.Tensor] = {}
     dtype = positions.dtype
@@ -395,10 +457,10 @@ def geometry_pass(
         values = _material_values(mats[0], need_material, lambda s: sample(s, 0, None), n,
                                   positions)
         for ch in list(values):  # a constant (C, 1) is scattered as an expanded view
-            out[ch] = to_image(values.pop(ch).expand(-1, n), frags, fill=0.0)
+            put(ch, values.pop(ch).expand(-1, n))
     elif need_material:
         sizes = {"albedo": 3, "alpha": 1, "metallic": 1, "roughness": 1, "ao": 1, "emissive": 3}
-        packed = {ch: positions.new_zeros(sizes[ch], n) for ch in need_material}
+        by_material = {ch: positions.new_zeros(sizes[ch], n) for ch in need_material}
         for m in range(len(mats)):
             sel = (mat_index == m).nonzero().squeeze(1)
             if sel.numel() == 0:
@@ -406,10 +468,10 @@ def geometry_pass(
             values = _material_values(mats[m], need_material, lambda s, m=m, sel=sel: sample(
                 s, m, sel), sel.numel(), positions)
             for ch, v in values.items():  # in place: one packed copy per channel
-                packed[ch].index_copy_(1, sel, v.expand(-1, sel.numel()))
+                by_material[ch].index_copy_(1, sel, v.expand(-1, sel.numel()))
             del values
         for ch in need_material:
-            out[ch] = to_image(packed.pop(ch), frags, fill=0.0)
+            put(ch, by_material.pop(ch))
     for values in memo.values():  # only a normal map is sampled later
         for slot in [s for s in values if s != "normal"]:
             del values[slot]
@@ -423,7 +485,7 @@ def geometry_pass(
     # do not coexist with these images
     pos = interpolate_packed(positions, frags)[0] if "position" in need else None  # (3, N)
     if "position" in channels:
-        out["position"] = to_image(pos, frags)
+        put("position", pos)
     if "depth" in channels:
         rows = view.to(dtype).expand(frags.face_id.shape[0], 4, 4)[:, 2].index_select(
             0, frags.items)  # (N, 4) third row of each pixel's view matrix
@@ -455,8 +517,8 @@ def geometry_pass(
                 nrm.mul_(torch.where(frags.front_facing, 1.0, -1.0).to(nrm.dtype)[None])
             else:
                 nrm = torch.where(frags.front_facing[None], nrm, -nrm)
-        out["normal"] = to_image(nrm, frags)
-    return GBuffer(**out)
+        put("normal", nrm)
+    return GBuffer(**out, packed=PackedChannels(frags.pixels, held) if held else None)
 
 
 def _identity_channels(frags: Fragments, channels: set[str], face_object: torch.Tensor | None,

@@ -223,6 +223,7 @@ class RenderPlan:
     edge_supersample: int = 1
     edge_pixels: int | None = None
     origin: tuple[float, float, float] | None = None
+    packed: frozenset[str] = frozenset()
 
     @property
     def steps(self) -> list[str]:
@@ -230,7 +231,8 @@ class RenderPlan:
         cull = "" if self.cull == "none" else f" (cull {self.cull} back faces)"
         layers = f" {self.layers} layers" if self.layers > 1 else ""
         steps = [f"rasterize {self.resolution[0]}x{self.resolution[1]}{layers}{cull}",
-                 "gbuffer " + ",".join(sorted(self.channels))]
+                 "gbuffer " + ",".join(sorted(self.channels))
+                 + (" (packed " + ",".join(sorted(self.packed)) + ")") * bool(self.packed)]
         if self.chunks:
             steps.insert(0, f"batch {sum(self.chunks)} in {len(self.chunks)} chunks of "
                             f"<= {max(self.chunks)}")
@@ -617,7 +619,9 @@ class Renderer(nn.Module):
             ibl_specular=environment.specular_mode if environment is not None
             else "table", ssr=ssr,
             amodal=scene.num_objects if "amodal" in requested else 0,
-            motion=_motion_steps(requested), edge_supersample=self.raster_settings.edge_supersample)
+            motion=_motion_steps(requested), edge_supersample=self.raster_settings.edge_supersample,
+            packed=_packed_channels(shading, alpha, channels, requested, shadow_lights, ssao,
+                                    fog, ssr, self.raster_settings.edge_supersample))
 
     def _plan_ssr(self, scene: RenderScene, shading: str, alpha: str) -> bool:
         """SSR runs for ``"pbr"`` when some material may be smoother than the cut-off."""
@@ -780,7 +784,8 @@ class Renderer(nn.Module):
                              face_object=scene.face_object,
                              object_category=scene.object_category,
                              object_coords=scene.object_coords,
-                             release_derivatives=release and not plan.motion)
+                             release_derivatives=release and not plan.motion,
+                             packed=plan.packed)
                for f in layers]
         if plan.motion:  # per layer: the alpha modes then select them like the other channels
             gbs = _motion_channels(plan, scene, layers, gbs, frames, face_ranges, b,
@@ -831,7 +836,8 @@ class Renderer(nn.Module):
                 # surface frames again: only the outputs, mask and alpha stay alive (memory:
                 # with autograd 36 B/px of position, normal and albedo at the composite)
                 keep = set(plan.requested) | {"mask", "alpha"}
-                gb = gbs[0] = gb.replace(**{ch: None for ch in gb.channels() if ch not in keep})
+                gb = gbs[0] = gb.replace(packed=None, **{ch: None for ch in gb.channels()
+                                                         if ch not in keep})
         else:
             modes, cutoffs = face_alpha_modes(scene.materials, scene.face_material,
                                               scene.faces.shape[0], positions.device)
@@ -1308,6 +1314,23 @@ def _check_label_fields(scene: RenderScene, requested: set[str]) -> None:
 _MOTION_STEPS = {"flow_forward": "flow forward", "flow_forward_valid": "flow forward valid",
                  "flow_backward": "flow backward", "flow_backward_valid": "flow backward valid",
                  "motion": "motion vectors"}
+
+
+#: G-buffer channels only the lighting reads; :func:`_packed_channels` keeps them packed
+_SURFACE_CHANNELS = frozenset({"position", "normal", "albedo", "metallic", "roughness"})
+
+
+def _packed_channels(shading: str, alpha: str, channels: Iterable[str],
+                     requested: Iterable[str], shadow_lights: tuple, ssao: bool, fog: tuple,
+                     ssr: bool, edge_supersample: int) -> frozenset[str]:
+    """The surface channels the geometry pass keeps packed (covered pixels only, no
+    ``(B, C, H, W)`` frame; memory): those no output asks for, when ``shade`` is their only
+    reader (one opaque layer, a lit model; shadow receivers, SSAO, fog, SSR and the edge
+    pass read the frames)."""
+    if shading not in LIT_MODELS or alpha != "none" or shadow_lights or ssao or fog or ssr \
+            or edge_supersample > 1:
+        return frozenset()
+    return frozenset(_SURFACE_CHANNELS & set(channels)) - set(requested)
 
 
 def _motion_steps(requested: Iterable[str]) -> tuple[str, ...]:

@@ -43,8 +43,15 @@ def to_image(packed: torch.Tensor, frags: Fragments, fill: float = 0.0) -> torch
 
     ``packed`` may be an expanded (C, 1) -> (C, N) view (a constant per channel).
     Differentiable with respect to ``packed``, which it does not keep alive for backward."""
-    b, h, w = frags.face_id.shape
-    flat = _Scatter.apply(packed, frags.pixels, b * h * w, fill)
+    return scatter_image(packed, frags.pixels, frags.face_id.shape, fill)
+
+
+def scatter_image(packed: torch.Tensor, pixels: torch.Tensor, shape: tuple[int, int, int],
+                  fill: float = 0.0) -> torch.Tensor:
+    """:func:`to_image` by the pixels' flat indices: (C, N) values at ``pixels`` (N,)
+    (b*H*W + i*W + j) of a (B, C, H, W) image of ``shape`` (B, H, W), ``fill`` elsewhere."""
+    b, h, w = shape
+    flat = _Scatter.apply(packed, pixels, b * h * w, fill)
     return flat.view(-1, b, h, w).transpose(0, 1)
 
 

@@ -287,6 +287,12 @@ def _pack_item(item, covered, dt, position, normal, albedo, metallic, roughness,
     if covered is not None:
         sel = covered[item].reshape(-1).nonzero().squeeze(1)
         flat = [t.index_select(1, sel) for t in flat]
+    return _item_surface(item, sel, flat, dt, camera_position)
+
+
+def _item_surface(item, sel, flat, dt, camera_position):
+    """:func:`_pack_item`'s tuple from the item's packed ``flat`` channels (position,
+    normal, albedo, metallic, roughness)."""
     # half precision: shaded in float32, gradients back saturated (to_compute)
     pos, nrm, base, metal, rough = (to_compute(t, dt) for t in flat)
     del flat
@@ -448,10 +454,17 @@ def shade(
         raise TypeError(f"gbuffer: expected a torchraster.GBuffer, got {type(gbuffer).__name__}"
                         " (build one with GBuffer(position=..., normal=..., ...))")
     gbuffer.require("position", "normal", "albedo", "metallic", "roughness", by="shade")
-    position, normal, albedo = gbuffer.position, gbuffer.normal, gbuffer.albedo
-    metallic, roughness = gbuffer.metallic, gbuffer.roughness
+    store = gbuffer.packed  # channels held packed (covered pixels only), or None
+    if store is not None and gbuffer.mask is None:
+        raise ValueError("gbuffer: a GBuffer with packed channels needs its mask channel")
+    b, _, h, w = (gbuffer.position if gbuffer.position is not None else gbuffer.mask).shape
+    if store is not None:  # ao and emissive are applied to frames: made here
+        gbuffer = gbuffer.replace(**{ch: store.image(ch, (b, h, w)) for ch in (
+            "ao", "emissive") if getattr(gbuffer, ch) is None and ch in store.values})
+    surface_names = ("position", "normal", "albedo", "metallic", "roughness")
+    position, normal, albedo, metallic, roughness = (getattr(gbuffer, ch)
+                                                      for ch in surface_names)
     ao, emissive, mask = gbuffer.ao, gbuffer.emissive, gbuffer.mask
-    b, _, h, w = position.shape
     check_tensor("camera_position", camera_position, (b, 3), floating=True)
     if lights is None:
         lights = Lights()
@@ -470,13 +483,14 @@ def shade(
     if light_chunk is not None and (not isinstance(light_chunk, int) or light_chunk < 1):
         raise ValueError(f"light_chunk: expected a positive int or None, got {light_chunk!r}")
 
-    inputs = [position, normal, albedo, metallic, roughness, camera_position]
+    inputs = [getattr(gbuffer, ch) if getattr(gbuffer, ch) is not None else store.values[ch]
+              for ch in surface_names] + [camera_position]
     inputs += [t for t in (ao, emissive) if t is not None]
     out_dtype = inputs[0].dtype
     for t in inputs[1:]:
         out_dtype = torch.promote_types(out_dtype, t.dtype)
     dt = torch.float32 if out_dtype in LOW_PRECISION else out_dtype
-    dev = position.device
+    dev = mask.device if position is None else position.device
 
     covered = None if mask is None else (mask > 0)
 
@@ -495,6 +509,11 @@ def shade(
     # the full-frame tensors are built only for other models, ambient light and IBL.
     fused = shading_model is _cook_torrance_model
     full_frame = (kinds and not fused) or lights.ambient is not None or ibl is not None
+    if full_frame and store is not None:  # frames of the packed channels
+        position, normal, albedo, metallic, roughness = (
+            store.image(ch, (b, h, w)) if t is None else t for ch, t in zip(
+                surface_names, (position, normal, albedo, metallic, roughness), strict=True))
+        store = None
     if full_frame:  # the per-pixel surface, built once for every light, ambient and IBL
         pos, nrm, base, metal, rough = (prep(t) for t in (position, normal, albedo, metallic,
                                                            roughness))
@@ -517,7 +536,8 @@ def shade(
     one_pass = fused_direct and no_grad and sum(len(_chunks(part.count, per_chunk))
                                                 for _, part in kinds) == 1
     frame = None
-    if one_pass and reuse_albedo and not full_frame and albedo.shape[1] == 3 and (
+    if one_pass and reuse_albedo and not full_frame and albedo is not None and (
+            albedo.shape[1] == 3) and (
             albedo.dtype == dt and albedo.stride(3) == 1 and albedo.stride(2) == w
             and min(albedo.stride()) > 0 and not albedo.requires_grad):  # rows of pixels
         # item i's albedo is packed (copied) before item i's radiance overwrites it, and the
@@ -526,10 +546,30 @@ def shade(
     elif fused_direct and no_grad:
         frame = torch.zeros(b, 3, h * w, device=dev, dtype=dt)
 
+    pieces = starts = None
+    if store is not None:  # each item's columns of the packed channels (views)
+        starts = store.item_starts(b, h, w)
+        if starts[-1] != int(covered.sum()) or starts[0] != 0:
+            raise ValueError(f"gbuffer.packed: {store.pixels.numel()} pixels of which "
+                             f"{starts[-1] - starts[0]} in the frame, but the mask covers "
+                             f"{int(covered.sum())}")
+        counts = [e - s for s, e in zip(starts[:-1], starts[1:], strict=True)]
+        pieces = [store.values[ch].split(counts, dim=1) if t is None else None
+                  for ch, t in zip(surface_names, (position, normal, albedo, metallic,
+                                                   roughness), strict=True)]
+
     def packed(item: int) -> tuple:
-        if item not in items:
+        if item in items:
+            return items[item]
+        if pieces is None:
             items[item] = _pack_item(item, covered, dt, position, normal, albedo, metallic,
                                      roughness, camera_position)
+            return items[item]
+        sel = store.pixels[starts[item]:starts[item + 1]] - item * h * w
+        flat = [p[item] if p is not None else t[item].reshape(t.shape[1], h * w).index_select(
+            1, sel) for p, t in zip(pieces, (position, normal, albedo, metallic, roughness),
+                                    strict=True)]
+        items[item] = _item_surface(item, sel, flat, dt, camera_position)
         return items[item]
 
     def done(item: int) -> None:
@@ -575,7 +615,7 @@ def shade(
             radiance = frame.view(b, 3, h, w)
         else:
             radiance = _unpack_items(acc, [packed(i) for i in range(b)], (b, 3, h, w),
-                                     position.new_zeros((), dtype=dt))
+                                     camera_position.new_zeros((), dtype=dt))
         items.clear()  # memory: the packed copies are not needed past this point
         acc.clear()
 
@@ -610,6 +650,7 @@ def shade(
         radiance = radiance + prep(emissive)
     if covered is not None and no_grad:
         radiance.masked_fill_(~covered, 0.0)
-    elif covered is not None:
+    elif covered is not None and not (fused_direct and indirect is None and emissive is None):
+        # (the fused pass alone writes covered pixels only, into zeros: no masked copy)
         radiance = torch.where(covered, radiance, 0.0)
     return finish_low_precision(radiance, out_dtype)
