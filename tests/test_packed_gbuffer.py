@@ -17,7 +17,7 @@ import torchraster as tr
 from torchraster.gbuffer import GBuffer, PackedChannels, geometry_pass
 from torchraster.raster import rasterize
 from torchraster.shading import shade
-from torchraster.shading.lights import Lights, PointLights
+from torchraster.shading.lights import Lights
 
 SURFACE = ("position", "normal", "albedo", "metallic", "roughness")
 
@@ -49,16 +49,36 @@ def _scene(dtype: torch.dtype = torch.float32):
     return scene, view, proj, lights.to(dtype=dtype)
 
 
-@pytest.mark.parametrize("grad", [False, True])
-def test_renderer_packed_surface_equals_requested_frames(grad: bool) -> None:
+@pytest.mark.parametrize(("grad", "extra", "packed_names"), [
+    (False, "", "albedo,metallic,normal,position,roughness"),
+    (True, "", "albedo,metallic,normal,position,roughness"),
+    (True, "shadows", "albedo,metallic,roughness"),  # receivers read position and normal
+    (False, "ssao", "albedo,metallic,position,roughness"),
+    (True, "fog", "albedo,metallic,normal,roughness"),
+])
+def test_renderer_packed_surface_equals_requested_frames(grad: bool, extra: str,
+                                                         packed_names: str) -> None:
     scene, view, proj, lights = _scene()
-    r = tr.Renderer(24, shading="pbr")
+    if extra == "shadows":  # a floor under the sphere for the point lights' shadows
+        floor = torch.tensor([[-3.0, -1, -3], [3, -1, -3], [3, -1, 3], [-3, -1, 3]])
+        pos = torch.cat([scene.positions, floor])
+        n = scene.positions.shape[0]
+        faces = torch.cat([scene.faces, torch.tensor([[0, 2, 1], [0, 3, 2]]) + n])
+        uvs = torch.cat([scene.uvs, torch.zeros(4, 2)])
+        scene = tr.RenderScene(pos, faces, uvs=uvs, materials=scene.materials,
+                               face_material=torch.cat([scene.face_material,
+                                                        torch.zeros(2, dtype=torch.long)]))
+        lights = dataclasses.replace(lights, point=dataclasses.replace(
+            lights.point, cast_shadows=torch.ones(1, 2, dtype=torch.bool)))
+    kw = {"shadows": {"shadows": True}, "ssao": {"ssao": tr.post.SSAO()},
+          "fog": {"fog": tr.shading.volumetric.Fog(density=0.3, steps=4)}}.get(extra, {})
+    r = tr.Renderer(24, shading="pbr", **kw)
     results = []
     for channels in ((), SURFACE, ("albedo",)):  # packed, frames, some of each
         positions = scene.positions.clone().requires_grad_(grad)
         intensity = lights.point.intensity.clone().requires_grad_(grad)
-        lit = Lights(directional=lights.directional, point=PointLights(
-            position=lights.point.position, color=lights.point.color, intensity=intensity))
+        lit = dataclasses.replace(lights, point=dataclasses.replace(lights.point,
+                                                                    intensity=intensity))
         sc = dataclasses.replace(scene, positions=positions)
         with torch.set_grad_enabled(grad):
             out = r(sc, view, proj, lit, channels=channels)
@@ -67,9 +87,11 @@ def test_renderer_packed_surface_equals_requested_frames(grad: bool) -> None:
         gb_step = next(p for p in out.plan if p.startswith("gbuffer "))
         results.append((out.image, grads, gb_step))
     packed, frames, some = results
-    assert "(packed albedo,metallic,normal,position,roughness)" in packed[2]
-    assert "packed" not in frames[2] and "(packed metallic,normal,position,roughness)" in some[2]
-    assert bool((packed[0][2] == 0).all()) and bool((packed[0][0] > 0).any())  # empty item
+    assert f"(packed {packed_names})" in packed[2]
+    assert "packed" not in frames[2]
+    assert f"(packed {packed_names.replace('albedo,', '')})" in some[2]
+    assert bool((packed[0][0] > 0).any())
+    assert extra == "fog" or bool((packed[0][2] == 0).all())  # the empty item
     for other in (frames, some):
         assert torch.equal(packed[0], other[0])
         for a, b in zip(packed[1], other[1], strict=True):

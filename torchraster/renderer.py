@@ -1324,13 +1324,19 @@ def _packed_channels(shading: str, alpha: str, channels: Iterable[str],
                      requested: Iterable[str], shadow_lights: tuple, ssao: bool, fog: tuple,
                      ssr: bool, edge_supersample: int) -> frozenset[str]:
     """The surface channels the geometry pass keeps packed (covered pixels only, no
-    ``(B, C, H, W)`` frame; memory): those no output asks for, when ``shade`` is their only
-    reader (one opaque layer, a lit model; shadow receivers, SSAO, fog, SSR and the edge
-    pass read the frames)."""
-    if shading not in LIT_MODELS or alpha != "none" or shadow_lights or ssao or fog or ssr \
-            or edge_supersample > 1:
+    ``(B, C, H, W)`` frame; memory): those no output and no pass but ``shade`` reads (one
+    opaque layer, a lit model; shadow receivers read position and normal frames, SSAO the
+    normal, fog the position, SSR and the edge pass all of them)."""
+    if shading not in LIT_MODELS or alpha != "none" or ssr or edge_supersample > 1:
         return frozenset()
-    return frozenset(_SURFACE_CHANNELS & set(channels)) - set(requested)
+    framed = set(requested)
+    if shadow_lights:
+        framed |= {"position", "normal"}
+    if ssao:
+        framed.add("normal")
+    if fog:
+        framed.add("position")
+    return frozenset(_SURFACE_CHANNELS & set(channels)) - framed
 
 
 def _motion_steps(requested: Iterable[str]) -> tuple[str, ...]:
