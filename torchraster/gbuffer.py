@@ -588,7 +588,9 @@ def _material_values(mat: Material | None, channels: set[str], sample, n: int,
     if channels & {"albedo", "alpha"}:
         base = _factor(mat.base_color_factor, like).reshape(4, 1)
         tex = sample("base_color")
-        if tex is not None:
+        if tex is not None and "alpha" not in channels:  # (3, n): no alpha row kept alive
+            base = base[:3] * tex[:3]
+        elif tex is not None:
             if tex.shape[0] == 3:
                 tex = torch.cat([tex, torch.ones_like(tex[:1])])
             base = base * tex
