@@ -82,8 +82,10 @@ def _compare(eager, compiled, repeats: int) -> tuple[float, float, float, float,
 
 def lighting_rows(res: int, n_lights: int, repeats: int) -> list[list[object]]:
     _, gb, eye = _frame(res, n_lights)
-    (_, *attrs), = lighting._pack_items(gb.mask > 0, torch.float32, gb.position, gb.normal,
-                                        gb.albedo, gb.metallic, gb.roughness, eye)
+    (_, pos, nrm, eye_0, base, metal, rough), = lighting._pack_items(
+        gb.mask > 0, torch.float32, gb.position, gb.normal, gb.albedo, gb.metallic,
+        gb.roughness, eye)
+    attrs = [pos, *lighting._unit_nv(pos, nrm, eye_0), base, metal, rough]
     point = _frame(res, n_lights)[0][3].point
     rows = []
 

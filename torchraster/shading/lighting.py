@@ -292,14 +292,24 @@ def _pack_item(item, covered, dt, position, normal, albedo, metallic, roughness,
 
 def _item_surface(item, sel, flat, dt, camera_position):
     """:func:`_pack_item`'s tuple from the item's packed ``flat`` channels (position,
-    normal, albedo, metallic, roughness)."""
+    normal, albedo, metallic, roughness): (sel, position, normal (not yet unit), eye
+    ``(3, 1)``, albedo, metallic, roughness); :func:`_unit_nv` makes n and v."""
     # half precision: shaded in float32, gradients back saturated (to_compute)
     pos, nrm, base, metal, rough = (to_compute(t, dt) for t in flat)
-    del flat
-    n = safe_normalize(nrm, dim=0)
-    del nrm
-    v = safe_normalize(camera_position[item].to(dt)[:, None] - pos, dim=0)
-    return sel, pos, n, v, base, metal, rough
+    return sel, pos, nrm, camera_position[item].to(dt)[:, None], base, metal, rough
+
+
+def _unit_nv(pos, nrm, eye):
+    """Unit normal and unit direction to the eye ``(3, M)`` of packed pixels."""
+    return safe_normalize(nrm, dim=0), safe_normalize(eye - pos, dim=0)
+
+
+def _lit_chunk(kind, lights, item, pos, nrm, eye, base, metal, rough, vis, multiscatter):
+    """:func:`cook_torrance_lights` of packed pixels from their raw normal and the eye (the
+    unit vectors made inside: a checkpoint of this keeps only its inputs, memory)."""
+    n, v = _unit_nv(pos, nrm, eye)
+    return cook_torrance_lights(kind, lights, item, pos, n, v, base, metal, rough, vis,
+                                multiscatter=multiscatter)
 
 
 def _pack_items(covered, dt, position, normal, albedo, metallic, roughness, camera_position):
@@ -331,21 +341,28 @@ def _fused_direct(kind, lights, packed, vis, use_ckpt, acc, multiscatter=True, d
 
 
 def _fused_item(kind, lights, item, attrs, vis_i, per, use_ckpt, acc, multiscatter):
-    """:func:`_fused_direct` of one batch item: its packed ``attrs`` (position, n, v, albedo,
-    metallic, roughness), visibility ``(L, M)`` or None, pixel chunks of ``per``."""
-    m = attrs[0].shape[1]
+    """:func:`_fused_direct` of one batch item: its packed ``attrs`` (position, raw normal,
+    eye, albedo, metallic, roughness), visibility ``(L, M)`` or None, pixel chunks of
+    ``per``. Checkpointed chunks make n and v inside (backward keeps only the inputs)."""
+    pos, nrm, eye, base, metal, rough = attrs
+    m = pos.shape[1]
     inplace = not torch.is_grad_enabled()  # no graph: add each chunk in place
     if inplace and acc[item] is None:
-        acc[item] = attrs[0].new_zeros(3, m)
+        acc[item] = pos.new_zeros(3, m)
+    if not use_ckpt:  # once for the item
+        n, v = _unit_nv(pos, nrm, eye)
     parts = []
     for s0 in range(0, m, per):
-        args = [t[:, s0:s0 + per] for t in attrs]
-        args.append(None if vis_i is None else vis_i[:, s0:s0 + per])
+        cut = slice(s0, s0 + per)
+        vis = None if vis_i is None else vis_i[:, cut]
         if use_ckpt:
-            rad = checkpoint(cook_torrance_lights, kind, lights, item, *args,
-                             multiscatter=multiscatter, use_reentrant=False)
+            rad = checkpoint(_lit_chunk, kind, lights, item, pos[:, cut], nrm[:, cut], eye,
+                             base[:, cut], metal[:, cut], rough[:, cut], vis, multiscatter,
+                             use_reentrant=False)
         else:
-            rad = cook_torrance_lights(kind, lights, item, *args, multiscatter=multiscatter)
+            rad = cook_torrance_lights(kind, lights, item, pos[:, cut], n[:, cut], v[:, cut],
+                                       base[:, cut], metal[:, cut], rough[:, cut], vis,
+                                       multiscatter=multiscatter)
         if inplace:
             acc[item][:, s0:s0 + per] += rad
         else:
