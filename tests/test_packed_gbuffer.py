@@ -175,3 +175,34 @@ def test_packed_channels_are_checked() -> None:
     with pytest.raises(ValueError, match="needs its mask"):
         shade(gb.replace(mask=None), camera_position=eye, lights=_scene()[3])
     assert isinstance(gb, GBuffer) and "position" not in gb
+
+
+@pytest.mark.parametrize("masked", [True, False])
+def test_unpacked_radiance_gradcheck(masked: bool) -> None:
+    # shade's autograd path writes every item's packed radiance into one frame through a
+    # custom function (only the indices saved): float64 gradcheck, an item with nothing
+    # covered (zero gradients, still connected) and the unmasked path (every pixel)
+    g = torch.Generator().manual_seed(7)
+    b, h, w = 3, 3, 4
+    mask = (torch.rand(b, 1, h, w, generator=g, dtype=torch.float64) > 0.3).double()
+    mask[1] = 0.0
+    pos = torch.randn(b, 3, h, w, generator=g, dtype=torch.float64).requires_grad_(True)
+    albedo = torch.rand(b, 3, h, w, generator=g, dtype=torch.float64).requires_grad_(True)
+    nrm = torch.randn(b, 3, h, w, generator=g, dtype=torch.float64)
+    lights = Lights(point=tr.PointLights(
+        position=torch.tensor([[[0.0, 3.0, 2.0]]], dtype=torch.float64),
+        color=torch.ones(1, 1, 3, dtype=torch.float64),
+        intensity=torch.ones(1, 1, dtype=torch.float64)))
+    eye = torch.tensor([[0.0, 0.0, 4.0]], dtype=torch.float64).expand(b, 3)
+    rough = torch.full((b, 1, h, w), 0.5, dtype=torch.float64)
+
+    def render(p, a):
+        gb = GBuffer(position=p, normal=nrm, albedo=a, metallic=rough * 0.0, roughness=rough,
+                     mask=mask if masked else None)
+        return shade(gb, camera_position=eye, lights=lights)
+
+    assert torch.autograd.gradcheck(render, (pos, albedo))
+    out = render(pos, albedo)
+    grads = torch.autograd.grad(out.sum(), (pos, albedo))
+    if masked:
+        assert bool((out[1] == 0).all()) and all(bool((t[1] == 0).all()) for t in grads)

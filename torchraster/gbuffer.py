@@ -513,10 +513,9 @@ def geometry_pass(
         in_place = not torch.is_grad_enabled()  # memory: no packed copies at the peak
         nrm = safe_normalize(nrm, dim=0, inplace=in_place)
         if frags.front_facing is not None:  # back faces are seen from behind: flip
-            if in_place:  # x * -1 is -x, bit for bit
-                nrm.mul_(torch.where(frags.front_facing, 1.0, -1.0).to(nrm.dtype)[None])
-            else:
-                nrm = torch.where(frags.front_facing[None], nrm, -nrm)
+            # x * -1 is -x bit for bit (one (1, N) sign, no negated (3, N) copy: memory)
+            sign = torch.where(frags.front_facing, 1.0, -1.0).to(nrm.dtype)[None]
+            nrm = nrm.mul_(sign) if in_place else nrm * sign
         put("normal", nrm)
     return GBuffer(**out, packed=PackedChannels(frags.pixels, held) if held else None)
 

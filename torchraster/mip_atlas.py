@@ -188,44 +188,71 @@ class _TrilinearLookup(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, grad):
         atlas, uv, duv_dx, duv_dy, table = ctx.saved_tensors
-        need_atlas, need_uv, need_dx, need_dy = ctx.needs_input_grad[:4]
+        need_atlas = ctx.needs_input_grad[0]
+        needs = ctx.needs_input_grad[1:4]
         n = uv.shape[1]
-        dt = compute_dtype(uv, atlas)
-        leaves = [t.detach().to(dt).requires_grad_(nd) for t, nd in zip(
-            (uv, duv_dx, duv_dy), (need_uv, need_dx, need_dy), strict=True)]
-        with torch.enable_grad():  # the per-point part only: coordinates and level weights
-            frac, grid = _taps(*leaves, table, *ctx.args, tuple(atlas.shape[-2:]))
-        tex, grid0, w1 = atlas.detach().to(dt), grid.detach(), frac.detach()[None]
-        grad = grad.to(dt)
-        s = None
-        if need_dx or need_dy or uv.dtype in LOW_PRECISION:
-            s = F.grid_sample(tex, grid0, mode="bilinear", padding_mode="border",
-                              align_corners=True)[0, :, 0]  # (C, 2N)
-        if uv.dtype in LOW_PRECISION:  # finish_low_precision's clamp passes grads inside
-            big = torch.finfo(uv.dtype).max
-            out = torch.lerp(s[:, :n], s[:, n:], w1)
-            grad = grad * ((out >= -big) & (out <= big))
-            del out
-        outs, grads_out = [], []
-        if need_dx or need_dy:  # d lerp(a, b, w) / dw = b - a
-            outs.append(frac)
-            grads_out.append((grad * (s[:, n:] - s[:, :n])).sum(0))
-        del s
+        tex = atlas.detach().to(compute_dtype(uv, atlas))
+        result = [t.new_empty(t.shape) if nd else None
+                  for t, nd in zip((uv, duv_dx, duv_dy), needs, strict=True)]
+        # the points are independent: their part of backward in chunks (bounded
+        # temporaries); the atlas gradient sums over every point, so with it one chunk
+        # (the same sums in the same order as one call)
+        step = n if need_atlas else LOOKUP_CHUNK
         grad_atlas = None
-        if need_atlas or need_uv:  # d lerp / da = 1 - w, d lerp / db = w
-            g = torch.cat((grad * (1.0 - w1), grad * w1), 1)[None, :, None]  # (1, C, 1, 2N)
-            # grid_sample's own backward: interpolation 0 = bilinear, padding 1 = border
-            ga, gg = torch.ops.aten.grid_sampler_2d_backward(
-                g, tex, grid0, 0, 1, True, [need_atlas, need_uv])
-            del g
-            if need_atlas:
+        for i in range(0, max(n, 1), max(step, 1)):
+            cut = slice(i, min(i + step, n))
+            ga, parts = _lookup_backward(tex, uv[:, cut], duv_dx[:, cut], duv_dy[:, cut],
+                                         grad[:, cut], table, ctx.args, need_atlas, needs)
+            if ga is not None:
                 grad_atlas = finish_low_precision(ga, atlas.dtype)
-            if need_uv:
-                outs.append(grid)
-                grads_out.append(gg)
-        wrt = [t for t in leaves if t.requires_grad]
-        grads = iter(torch.autograd.grad(outs, wrt, grads_out, allow_unused=True) if wrt else ())
-        result = [next(grads) if t.requires_grad else None for t in leaves]
-        result = [g if g is None else finish_low_precision(g, t.dtype) for g, t in zip(
-            result, (uv, duv_dx, duv_dy), strict=True)]
+            for dest, part in zip(result, parts, strict=True):
+                if dest is not None and part is not None:
+                    dest[:, cut] = part
+                elif dest is not None:
+                    dest[:, cut] = 0.0
         return (grad_atlas, *result, None, None, None, None)
+
+
+def _lookup_backward(tex, uv, duv_dx, duv_dy, grad, table, args, need_atlas, needs):
+    """:class:`_TrilinearLookup`'s backward at some points: (the atlas gradient or None,
+    [d uv, d duv_dx, d duv_dy] each ``(2, m)`` or None)."""
+    need_uv, need_dx, need_dy = needs
+    n = uv.shape[1]
+    dt = tex.dtype
+    leaves = [t.detach().to(dt).requires_grad_(nd) for t, nd in zip(
+        (uv, duv_dx, duv_dy), needs, strict=True)]
+    with torch.enable_grad():  # the per-point part only: coordinates and level weights
+        frac, grid = _taps(*leaves, table, *args, tuple(tex.shape[-2:]))
+    grid0, w1 = grid.detach(), frac.detach()[None]
+    grad = grad.to(dt)
+    s = None
+    if need_dx or need_dy or uv.dtype in LOW_PRECISION:
+        s = F.grid_sample(tex, grid0, mode="bilinear", padding_mode="border",
+                          align_corners=True)[0, :, 0]  # (C, 2N)
+    if uv.dtype in LOW_PRECISION:  # finish_low_precision's clamp passes grads inside
+        big = torch.finfo(uv.dtype).max
+        out = torch.lerp(s[:, :n], s[:, n:], w1)
+        grad = grad * ((out >= -big) & (out <= big))
+        del out
+    outs, grads_out = [], []
+    if need_dx or need_dy:  # d lerp(a, b, w) / dw = b - a
+        outs.append(frac)
+        grads_out.append((grad * (s[:, n:] - s[:, :n])).sum(0))
+    del s
+    grad_atlas = None
+    if need_atlas or need_uv:  # d lerp / da = 1 - w, d lerp / db = w
+        g = torch.cat((grad * (1.0 - w1), grad * w1), 1)[None, :, None]  # (1, C, 1, 2N)
+        # grid_sample's own backward: interpolation 0 = bilinear, padding 1 = border
+        ga, gg = torch.ops.aten.grid_sampler_2d_backward(
+            g, tex, grid0, 0, 1, True, [need_atlas, need_uv])
+        del g
+        if need_atlas:
+            grad_atlas = ga
+        if need_uv:
+            outs.append(grid)
+            grads_out.append(gg)
+    wrt = [t for t in leaves if t.requires_grad]
+    grads = iter(torch.autograd.grad(outs, wrt, grads_out, allow_unused=True) if wrt else ())
+    result = [next(grads) if t.requires_grad else None for t in leaves]
+    return grad_atlas, [g if g is None else finish_low_precision(g, t.dtype) for g, t in zip(
+        result, (uv, duv_dx, duv_dy), strict=True)]

@@ -383,22 +383,50 @@ def _scatter_item(frame, item, sel, rad):
         frame[item].index_copy_(1, sel, rad)
 
 
+class _UnpackItems(torch.autograd.Function):
+    """``(B, 3, H, W)`` frame of zeros with item i's packed radiance ``rads[i]`` ``(3, M_i)``
+    written at its pixels ``sels[i]`` (None: all), in place into one frame. Backward: item
+    i's gradient gathered at its pixels; only the indices are saved (memory: indexed
+    assignment into views of one frame made autograd clone the whole frame's gradient
+    once per item, a frame-sized copy each)."""
+
+    @staticmethod
+    def forward(ctx, shape, sels, *rads):
+        b, _, h, w = shape
+        frame = rads[0].new_zeros(b, 3, h * w)
+        for item, (sel, rad) in enumerate(zip(sels, rads, strict=True)):
+            if sel is None:
+                frame[item].copy_(rad)
+            else:
+                frame[item].index_copy_(1, sel, rad)
+        ctx.save_for_backward(*(s for s in sels if s is not None))
+        ctx.all_pixels = [s is None for s in sels]
+        ctx.set_materialize_grads(False)
+        return frame.view(b, 3, h, w)
+
+    @staticmethod
+    def backward(ctx, grad):
+        if grad is None:
+            return (None, None) + (None,) * len(ctx.all_pixels)
+        b, _, h, w = grad.shape
+        flat = grad.reshape(b, 3, h * w)
+        saved = iter(ctx.saved_tensors)
+        return (None, None) + tuple(flat[i] if whole else flat[i].index_select(1, next(saved))
+                                    for i, whole in enumerate(ctx.all_pixels))
+
+
 def _unpack_items(acc, packed, shape, like):
     """``(B, 3, H, W)`` image of packed per-item radiance (0 at uncovered pixels), recorded
     by autograd (without a graph, :func:`shade` scatters into one frame in place)."""
     b, _, h, w = shape
-    # every item written in place into one frame (no per-item frames and their stacked
-    # copy, 24 B/px alive at the grad-mode peak); unlike index_copy_, indexed assignment
-    # does not keep ``rad`` for backward (memory)
-    frame = like.new_zeros(b, 3, h * w)
-    for item, (rad, (sel, *attrs)) in enumerate(zip(acc, packed, strict=True)):
+    sels, rads = [], []
+    for rad, (sel, *attrs) in zip(acc, packed, strict=True):
         if rad is None:  # unlit: 0, still connected to the inputs (zero gradients)
-            frame[item] += sum(t.sum() for t in attrs) * 0.0
-        elif sel is None:
-            frame[item] = rad
-        else:
-            frame[item, :, sel] = rad
-    return frame.view(b, 3, h, w)
+            m = h * w if sel is None else sel.numel()
+            rad = (sum(t.sum() for t in attrs) * 0.0).to(like.dtype).expand(3, m)
+        sels.append(sel)
+        rads.append(rad)
+    return _UnpackItems.apply(shape, sels, *rads)
 
 
 def shade(
