@@ -62,7 +62,8 @@ zero-area triangle), rendered forward and backward through ``tr.Renderer``:
 - far: the stage, its cameras (batch 1-2) and its lights (a sun with 1-3 cascades, a spot
   and two point lights, shadows of a random filter; in 30 % of the scenes a bound on the
   lookups' padded maps that the point lights' maps do not fit together, so they are looked
-  up in slices, or that nothing fits) moved together by 0 to 1e7 m in a random
+  up in slices, or that nothing fits; in half of them the lookups recompute their
+  receiver chunks in backward, ``RECOMPUTE_TAPS`` 0) moved together by 0 to 1e7 m in a random
   direction (the hard case of camera-relative rendering), float64 world positions (float32
   in a quarter of the scenes: rounded already, checked for NaN/Inf only), fog (its base
   height moved alike) or a dissolve (offset a multiple of the noise period) at random,
@@ -983,6 +984,7 @@ def scene_far(gen: torch.Generator, c: Counter) -> None:
     # sometimes a bound on the lookups' padded maps that the two point lights' maps do not
     # fit together (looked up in slices, shadows._light_slices) or that nothing fits
     bound = _pick(gen, (0, 20000, 200000)) if _chance(gen, 0.3) else None
+    recompute = _chance(gen, 0.5)  # lookups checkpointed (recomputed in backward)
     for shift in (offset, torch.zeros(3, dtype=torch.float64)):
         positions = (base + shift).to(dtype).requires_grad_(True)
         leaves = [positions]
@@ -994,13 +996,14 @@ def scene_far(gen: torch.Generator, c: Counter) -> None:
             view = view.float()  # the plain float32 render at the origin
         scene = tr.RenderScene(positions, faces, uvs=uvs.float(), face_material=face_material,
                                materials=[tr.Material(), tr.Material(roughness_factor=0.3)])
-        default_bound = shadows.PAD_MAP_ELEMENTS
+        default_bound, default_taps = shadows.PAD_MAP_ELEMENTS, shadows.RECOMPUTE_TAPS
         shadows.PAD_MAP_ELEMENTS = default_bound if bound is None else bound
+        shadows.RECOMPUTE_TAPS = 0 if recompute else default_taps
         try:
             out = tr.Renderer(res, fog=f, **kw)(scene, view, proj, lights,
                                                 channels=("face_id", "position"))
         finally:
-            shadows.PAD_MAP_ELEMENTS = default_bound
+            shadows.PAD_MAP_ELEMENTS, shadows.RECOMPUTE_TAPS = default_bound, default_taps
         c["covered"] += int((out.alpha > 0).sum())
         c["nonfinite_image"] += _nonfinite(out.image)
         c["nonfinite_alpha"] += _nonfinite(out.alpha)

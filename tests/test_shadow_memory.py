@@ -178,3 +178,43 @@ def test_linear_depth_in_place_is_the_formula_bit_for_bit(perspective):
         got = _linear_depth_inplace(ndc.clone(), near, far, perspective)
         assert torch.equal(got, want)
         assert torch.isposinf(got).sum() == torch.isposinf(ndc).sum()
+
+
+@pytest.mark.parametrize("filt", ["pcf", "pcss", "hard"])
+def test_lookups_recomputed_in_backward_equal_the_kept_graph(monkeypatch, filt):
+    # with autograd, shadow_visibility checkpoints its receiver chunks: the same image and
+    # gradients (positions, light positions) as keeping every chunk's graph, far fewer bytes
+    # saved for backward
+    from torchraster.shading import shadows
+
+    pos, faces, _, view, proj = _scene()
+    settings = ShadowSettings(map_size=48, filter=filt)
+    renderer = tr.Renderer(24, shading="pbr", shadows=settings)
+
+    def render():
+        p = pos.clone().requires_grad_(True)
+        light = torch.tensor([[[1.0, 2.0, 0.5], [0.2, 1.5, -0.3]]], requires_grad=True)
+        lights = tr.Lights(point=tr.PointLights(
+            light, torch.ones(1, 2, 3), torch.full((1, 2), 8.0),
+            cast_shadows=torch.ones(1, 2, dtype=torch.bool), shadow=settings))
+        saved = []
+
+        def pack(t):
+            saved.append(t.untyped_storage().nbytes())
+            return t
+
+        scene = tr.RenderScene(p, faces)
+        with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
+            image = renderer(scene, view, proj, lights).image
+        grads = torch.autograd.grad((image * image).sum(), (p, light))
+        return image.detach(), grads, sum(saved)
+
+    monkeypatch.setattr(shadows, "RECOMPUTE_TAPS", 0)  # this small frame recomputes too
+    image, grads, saved = render()
+    monkeypatch.setattr(shadows, "checkpoint", lambda fn, *args, **kw: fn(*args))
+    kept_image, kept_grads, kept_saved = render()
+    assert torch.equal(image, kept_image)
+    for a, b in zip(grads, kept_grads, strict=True):
+        assert torch.equal(a, b)
+    assert bool(grads[1].abs().sum() > 0)
+    assert saved < 0.8 * kept_saved, (saved, kept_saved)

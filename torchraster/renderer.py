@@ -1125,6 +1125,9 @@ class Renderer(nn.Module):
             vis = shadow_visibility(g, gb.position, safe_normalize(gb.normal, dim=1), receive,
                                     view, pixel)
             count = getattr(lights, g.kind).count
+            if g.kind not in full and list(g.lights) == list(range(count)):
+                full[g.kind] = vis  # the group is every light of its kind: no copy
+                continue
             if g.kind not in full:
                 full[g.kind] = vis.new_ones(b, count, 1, *vis.shape[-2:])
             full[g.kind] = full[g.kind].index_copy(

@@ -83,6 +83,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
 
 import torch
+from torch.utils.checkpoint import checkpoint
 
 from torchraster._validate import check_float, check_int, check_tensor
 from torchraster.numerics import compute_dtype, safe_normalize
@@ -101,6 +102,12 @@ SHADOW_MEMORY_BUDGET: int = 256 * 2**20
 DIRECT_RASTER_BUDGET: int = 32 * 2**20
 #: Pixel-taps evaluated at once by the filters (bounds the temporaries of one chunk).
 TAP_CHUNK_ELEMENTS: int = 2**22
+
+#: With autograd, lookups of more receiver-light taps than this recompute their receiver
+#: chunks in backward (checkpoints) instead of keeping every tap's temporaries (~200 B a
+#: tap: 16 PCF point lights at 256² x 4 kept 6 kB a pixel; backward then costs one more
+#: lookup pass, ~1.4x the forward + backward time of a shadowed frame).
+RECOMPUTE_TAPS: int = 2**20
 #: Largest tan(angle) between normal and light used by the slope-scaled bias (~84 deg).
 MAX_SLOPE: float = 10.0
 #: Largest shadow-map side: one 8192^2 float32 view is the whole SHADOW_MEMORY_BUDGET.
@@ -1793,8 +1800,8 @@ def shadow_visibility(g: ShadowMaps, position: torch.Tensor, normal: torch.Tenso
     for i, end in enumerate(ends.tolist()):
         cuts += [(j, min(j + per, end), i) for j in range(k, end, per)]
         k = end
-    for k, stop, item0 in cuts:
-        idx = pix[k:stop]
+    def chunk(idx: torch.Tensor, item0: int) -> torch.Tensor:
+        """(P, Ls) visibility of the receivers ``idx`` (of batch item ``item0``)."""
         p, n = p_all.index_select(1, idx).T, n_all.index_select(1, idx).T  # (P, 3)
         item = torch.div(idx, h * w, rounding_mode="floor")
         cam_depth = None
@@ -1811,7 +1818,18 @@ def shadow_visibility(g: ShadowMaps, position: torch.Tensor, normal: torch.Tenso
                     nxt), nxt, view_idx)
             vis = torch.lerp(vis, _visibility_of_view(g, p, n, item, nxt, padded, px, slot,
                                                       item0), t)
-        parts.append(vis)
+        return vis
+
+    # with autograd and more than RECOMPUTE_TAPS receiver-light taps, each chunk is
+    # recomputed in backward: the graph keeps its receivers, not the per-tap temporaries
+    # of every receiver-light pair (~200 B a tap; memory, docs/benchmarks.md)
+    recompute = torch.is_grad_enabled() and pix.numel() * n_l * taps > RECOMPUTE_TAPS and any(
+        t is not None and t.requires_grad for t in (p_all, n_all, px_all, g.depth, g.view,
+                                                    padded))
+    for k, stop, item0 in cuts:
+        idx = pix[k:stop]
+        parts.append(checkpoint(chunk, idx, item0, use_reentrant=False) if recompute
+                     else chunk(idx, item0))
     vis = torch.cat(parts)
     vis = 1 - g.settings.intensity * (1 - vis)
     out = out.index_copy(0, pix, vis.to(out.dtype))
