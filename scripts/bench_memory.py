@@ -17,7 +17,8 @@ the pbr geometry pass), ``shade N`` (the lighting pass alone over a G-buffer com
 the baseline), ``forward N`` (``Renderer`` under no_grad, N point lights), ``shadows S``
 (forward, the light casting a cube map of S² texels a face), ``post`` (forward + bloom +
 tone map), ``fwd+bwd`` (forward and backward of a loss on the image with gradients to
-the vertex positions and the light intensity).
+the vertex positions and the light intensity), ``shadows+bwd S`` (that forward and backward
+with the light casting a cube map of S² texels a face).
 
 The per-pass profile of the 512² x 8 pbr frame (forward, forward + backward, and forward
 with the light casting a 1024² cube map; ``--no-breakdown`` skips it): each function
@@ -55,7 +56,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "docs" / "bench_memory.json"
-KINDS = ("rasterize", "gbuffer", "shade", "forward", "shadows", "post", "fwd+bwd")
+KINDS = ("rasterize", "gbuffer", "shade", "forward", "shadows", "post", "fwd+bwd",
+         "shadows+bwd")
 #: (kind, parameter, resolution, batch) of the default run.
 GRID = (
     [(k, 1, r, b) for k in ("rasterize", "forward", "fwd+bwd")
@@ -139,7 +141,7 @@ def worker(spec: dict) -> dict:
         """The measured call at (res, b), its set-up done (G-buffer of ``shade``)."""
         mesh, scene, view, proj, lights = _scene(res, b, n if kind in ("shade", "forward",
                                                                        "fwd+bwd") else 1,
-                                                 shadow=n if kind == "shadows" else 0)
+                                                 shadow=n if kind.startswith("shadows") else 0)
         renderer = tr.Renderer((res, res), shading="pbr", **spec.get("renderer", {}))
         if caches:  # the warm-up's texture pyramids and shadow maps
             renderer.mip_cache, renderer.shadow_cache = caches["mip"], caches["shadow"]
@@ -155,8 +157,9 @@ def worker(spec: dict) -> dict:
                                    normals=scene.normals, uvs=scene.uvs,
                                    materials=scene.materials)
                 del frags
-        positions = scene.positions.clone().requires_grad_(kind == "fwd+bwd")
-        intensity = lights.point.intensity.clone().requires_grad_(kind == "fwd+bwd")
+        grad = kind in ("fwd+bwd", "shadows+bwd")
+        positions = scene.positions.clone().requires_grad_(grad)
+        intensity = lights.point.intensity.clone().requires_grad_(grad)
         post = PostChain(bloom=Bloom(), tonemap=ToneMap()) if kind == "post" else None
 
         def call():
@@ -177,14 +180,14 @@ def worker(spec: dict) -> dict:
             lit = tr.Lights(point=tr.PointLights(
                 position=lights.point.position, color=lights.point.color, intensity=intensity,
                 cast_shadows=lights.point.cast_shadows, shadow=lights.point.shadow))
-            sc = dataclasses.replace(scene, positions=positions) if kind == "fwd+bwd" else scene
-            ctx = contextlib.nullcontext() if kind == "fwd+bwd" else torch.no_grad()
+            sc = dataclasses.replace(scene, positions=positions) if grad else scene
+            ctx = contextlib.nullcontext() if grad else torch.no_grad()
             with ctx:
                 out = renderer(sc, view, proj, lit)
                 image = out.image
                 if post is not None:
                     image = post(image)
-                if kind == "fwd+bwd":
+                if grad:
                     image.square().mean().backward()
                     positions.grad = intensity.grad = None
                 return out.alpha.mean().item()
@@ -318,6 +321,8 @@ def _label(r: dict) -> str:
     kind, n = r["kind"], r["n"]
     if kind in ("shade", "forward", "fwd+bwd"):
         return f"{kind}, {n} light{'s' * (n > 1)}"
+    if kind == "shadows+bwd":
+        return f"fwd+bwd, cube map {n}²"
     if kind == "shadows":
         return f"forward, cube map {n}²" + (" †" if r.get("source") else "")
     return {"post": "forward + bloom + tone map"}.get(kind, kind)
