@@ -135,6 +135,9 @@ class GBuffer(Mapping):
     :func:`torchraster.shading.shade` by name: channels are fields, so ``metallic`` and
     ``roughness`` cannot be swapped by position. It is also a read-only mapping of the
     channels present (``gb["depth"]``, ``list(gb)``, ``gb.items()``, ``dict(gb)``).
+    ``packed`` (not a channel) may hold channels of the covered pixels only
+    (:class:`PackedChannels`, from ``geometry_pass(packed=...)``): ``shade`` reads them
+    where the image is None.
 
     Example:
         >>> gb = GBuffer(albedo=torch.ones(1, 3, 2, 2), mask=torch.ones(1, 1, 2, 2))
