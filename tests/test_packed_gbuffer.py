@@ -206,3 +206,33 @@ def test_unpacked_radiance_gradcheck(masked: bool) -> None:
     grads = torch.autograd.grad(out.sum(), (pos, albedo))
     if masked:
         assert bool((out[1] == 0).all()) and all(bool((t[1] == 0).all()) for t in grads)
+
+
+def test_saved_for_backward_is_flat_in_the_number_of_lights(monkeypatch) -> None:
+    # above PIXEL_LIGHT_CHUNK * GRAD_CHUNK_FACTOR pixel-lights the lighting checkpoints its
+    # pixel chunks (unit vectors made inside): autograd keeps the packed surface and the
+    # lights, not per pixel-light temporaries (a small chunk here: a large frame's case)
+    from torchraster.shading import lighting
+
+    monkeypatch.setattr(lighting, "PIXEL_LIGHT_CHUNK", 64)
+    scene, view, proj, _ = _scene()
+    r = tr.Renderer(48, shading="pbr")
+    saved = {}
+    for n in (1, 16):
+        ang = torch.arange(n) * (2 * torch.pi / n)
+        lights = Lights(point=tr.PointLights(
+            position=torch.stack([2 * ang.cos(), 2 + 0 * ang, 2 * ang.sin()], -1)[None],
+            color=torch.ones(1, n, 3), intensity=torch.full((1, n), 10.0 / n)))
+        positions = scene.positions.clone().requires_grad_(True)
+        storages = {}
+
+        def pack(t, storages=storages):
+            storages[t.untyped_storage().data_ptr()] = t.untyped_storage().nbytes()
+            return t
+
+        with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
+            image = r(dataclasses.replace(scene, positions=positions), view, proj,
+                      lights).image
+        torch.autograd.grad(image.square().sum(), positions)
+        saved[n] = sum(storages.values())
+    assert saved[16] < 1.25 * saved[1], saved
