@@ -321,14 +321,50 @@ def test_chunked_steps_merge_to_the_whole_batch():
     (the counts of rendered faces add up; Renderer(max_batch=...) merges its chunks)."""
     scene = _floor_scene()
     view, proj = _cameras(3)
-    lights = _lights(ShadowSettings(map_size=32), 1)
+    lights = _lights(ShadowSettings(map_size=32), 3)  # per item: each item its own maps
     r = tr.Renderer(24)
     with torch.no_grad():
         whole = r(scene, view, proj, lights)
-        parts = [r(scene, view[i:i + 1], proj, lights) for i in range(3)]
+        parts = [r(scene, view[i:i + 1], proj, _lights(ShadowSettings(map_size=32), 1))
+                 for i in range(3)]
     merged = merge_shadow_steps(s for p in parts for s in p.plan.shadow_maps)
     assert merged == whole.plan.shadow_maps
     assert torch.equal(torch.cat([p.image for p in parts]), whole.image)
+
+
+def test_lights_and_casters_shared_by_the_batch_share_their_maps():
+    """One scene seen by B cameras under lights of batch 1: the point / spot maps are
+    rendered once for the batch (the faces any item reads), read by every item: the same
+    image as per-item maps (lights given per item) and as each item alone; gradients to
+    the vertices and the light positions agree."""
+    scene = _floor_scene()
+    view, proj = _cameras(3)
+    st = ShadowSettings(map_size=32)
+    r = tr.Renderer(24)
+
+    def render(lights_b: int, items=slice(None)):
+        lights = _lights(st, lights_b)
+        pos = scene.positions.clone().requires_grad_(True)
+        light_pos = lights.point.position.clone().requires_grad_(True)
+        lights = dataclasses.replace(lights, point=dataclasses.replace(
+            lights.point, position=light_pos))
+        out = r(dataclasses.replace(scene, positions=pos), view[items], proj, lights)
+        grads = torch.autograd.grad(out.image.square().sum(), (pos, light_pos))
+        return out, grads
+
+    shared, (g_pos, g_light) = render(1)
+    per_item, (p_pos, p_light) = render(3)
+    assert torch.equal(shared.image, per_item.image)
+    torch.testing.assert_close(g_pos, p_pos, rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(g_light, p_light.sum(0, keepdim=True), rtol=1e-4, atol=1e-6)
+    alone = torch.cat([render(1, slice(i, i + 1))[0].image for i in range(3)])
+    assert torch.equal(shared.image.detach(), alone.detach())
+    def faces(out):  # (rendered, views) of the point group's step
+        step = next(s for s in out.plan.shadow_maps if s.startswith("shadow point"))
+        return tuple(int(x) for x in re.search(r"(\d+) of (\d+) faces rendered", step).groups())
+
+    (rendered, views), (rendered_b, views_b) = faces(shared), faces(per_item)
+    assert (views, views_b) == (12, 36) and 0 < rendered <= rendered_b
 
 
 def test_face_ranges_per_item_casters():

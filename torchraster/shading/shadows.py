@@ -836,7 +836,10 @@ def cull_local_views(groups: ShadowMaps | Sequence[ShadowMaps],
     if not CULL_VIEWS or not groups or not (points or segments is not None
                                             or boxes is not None):
         return
-    b = groups[0].view.shape[0]
+    # the receivers' batch; a group of batch 1 (maps shared by every item) is read by all
+    b = max([g.view.shape[0] for g in groups] + [pos.shape[0] for pos, _ in points]
+            + ([segments[0].shape[0]] if segments is not None else [])
+            + ([boxes.shape[0]] if boxes is not None else []))
     dt = torch.float64
     dev = groups[0].view.device
     scale = torch.zeros(b, dtype=dt, device=dev)  # (B,) the largest coordinate of each item
@@ -879,12 +882,15 @@ def cull_local_views(groups: ShadowMaps | Sequence[ShadowMaps],
         planes = _read_planes(g)
         if planes is None:
             continue
-        n_l, nv = g.view.shape[1:3]
-        light = g.light_position.detach().to(dt).expand(b, n_l, 3)
-        slack = CULL_SLACK * torch.maximum(scale, light.abs().amax((1, 2)))
-        needed = torch.zeros(b, n_l, nv, dtype=torch.bool, device=dev)
+        b_g, n_l, nv = g.view.shape[:3]
+        light = g.light_position.detach().to(dt).expand(b_g, n_l, 3)
+        # shared maps (b_g = 1 < b): any item's receivers; the largest item's slack
+        scale_g = scale if b_g == b else scale.amax().reshape(1)
+        slack = CULL_SLACK * torch.maximum(scale_g, light.abs().amax((1, 2)))
+        needed = torch.zeros(b_g, n_l, nv, dtype=torch.bool, device=dev)
         for i, lo, hi, extra in tests:
-            needed[i] |= _reach(planes[i], light[i], lo, hi, slack[i], **extra)
+            j = i if b_g == b else 0
+            needed[j] |= _reach(planes[j], light[j], lo, hi, slack[j], **extra)
         if casters is not None and g.settings.filter != "vsm":
             needed &= _caster_reach(g, casters, planes, light, slack)
         g.needed = needed
@@ -1768,6 +1774,7 @@ def shadow_visibility(g: ShadowMaps, position: torch.Tensor, normal: torch.Tenso
                                             camera_view, pixel_size) for sl in parts], 1)
     b, _, h, w = position.shape
     n_l = g.view.shape[1]
+    shared = g.view.shape[0] == 1 < b  # maps of batch 1: every item reads them
     dt = compute_dtype(position, normal, g.view)  # half precision: looked up in float32
     position, normal = position.to(dt), normal.to(dt)
     out = position.new_ones(b * h * w, n_l)
@@ -1804,6 +1811,8 @@ def shadow_visibility(g: ShadowMaps, position: torch.Tensor, normal: torch.Tenso
         """(P, Ls) visibility of the receivers ``idx`` (of batch item ``item0``)."""
         p, n = p_all.index_select(1, idx).T, n_all.index_select(1, idx).T  # (P, 3)
         item = torch.div(idx, h * w, rounding_mode="floor")
+        if shared:  # one set of maps read by every item
+            item, item0 = torch.zeros_like(item), 0
         cam_depth = None
         if g.layout == "cascades":
             cv = camera_view.to(p.dtype).index_select(0, item)
