@@ -191,6 +191,8 @@ class RenderPlan:
         origin: the world point the render was computed relative to
             (``RasterSettings(camera_relative=...)``, :mod:`~torchraster.relative`), filled in by
             ``forward`` (step ``"camera-relative origin (x, y, z)"``); None when not.
+        packed: surface channels the geometry pass keeps packed (covered pixels only, no
+            frames; read by the lighting alone): step ``"gbuffer ... (packed ...)"``.
 
     Iterating a plan yields its human-readable :attr:`steps`.
     """
