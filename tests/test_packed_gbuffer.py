@@ -236,3 +236,35 @@ def test_saved_for_backward_is_flat_in_the_number_of_lights(monkeypatch) -> None
         torch.autograd.grad(image.square().sum(), positions)
         saved[n] = sum(storages.values())
     assert saved[16] < 1.25 * saved[1], saved
+
+
+def test_recomputed_chunks_give_the_light_gradients_and_second_derivatives() -> None:
+    # checkpointed lighting chunks run their forward without a graph and recompute it in
+    # backward: gradients reach every light tensor (not passed to the chunk as inputs but
+    # as the lights' fields) and the G-buffer, and a second derivative goes through them
+    g = torch.Generator().manual_seed(11)
+    b, h, w = 2, 6, 7
+    d = torch.float64
+    gb = GBuffer(position=torch.randn(b, 3, h, w, generator=g, dtype=d),
+                 normal=torch.randn(b, 3, h, w, generator=g, dtype=d),
+                 albedo=torch.rand(b, 3, h, w, generator=g, dtype=d),
+                 metallic=torch.rand(b, 1, h, w, generator=g, dtype=d),
+                 roughness=torch.rand(b, 1, h, w, generator=g, dtype=d) * 0.8 + 0.1,
+                 mask=(torch.rand(b, 1, h, w, generator=g, dtype=d) > 0.2).to(d))
+    eye = torch.tensor([[0.0, 0.0, 4.0], [1.0, 0.5, 3.0]], dtype=d)
+    results = []
+    for ckpt in (False, True):
+        pos = torch.tensor([[[0.0, 3.0, 2.0], [1.0, -1.0, 3.0]]], dtype=d, requires_grad=True)
+        power = torch.tensor([[2.0, 5.0]], dtype=d, requires_grad=True)
+        albedo = gb.albedo.clone().requires_grad_(True)
+        lights = Lights(point=tr.PointLights(position=pos, color=torch.ones(1, 2, 3, dtype=d),
+                                             intensity=power))
+        rad = shade(gb.replace(albedo=albedo), camera_position=eye, lights=lights,
+                    checkpoint_chunks=ckpt)
+        first = torch.autograd.grad(rad.square().sum(), (pos, power, albedo),
+                                    create_graph=True)
+        second = torch.autograd.grad(first[0].square().sum(), (power, albedo))
+        results.append((rad.detach(), *first, *second))
+    for a, c in zip(*results, strict=True):
+        torch.testing.assert_close(a, c, rtol=1e-10, atol=1e-12)
+        assert bool(a.abs().sum() > 0)

@@ -22,6 +22,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 
@@ -342,6 +343,52 @@ def _fused_direct(kind, lights, packed, vis, use_ckpt, acc, multiscatter=True, d
             done(item)
 
 
+class _RecomputedChunk(torch.autograd.Function):
+    """:func:`_lit_chunk` evaluated without a graph, recomputed with one in backward (a
+    checkpoint whose forward records no autograd nodes: those small, long-lived objects,
+    kept until backward between the chunk's large temporaries, stopped malloc from reusing
+    the freed temporaries, so resident memory grew chunk after chunk). ``tensors``: the
+    lights' tensor fields, then the chunk's inputs."""
+
+    @staticmethod
+    def forward(ctx, run, n_light, *tensors):
+        ctx.run, ctx.n_light = run, n_light
+        ctx.save_for_backward(*tensors)
+        with torch.no_grad():
+            return run(tensors[:n_light], *tensors[n_light:])
+
+    @staticmethod
+    def backward(ctx, grad):
+        # create_graph (grad mode on here): the recomputation from the inputs themselves, so
+        # the gradients stay functions of them (second derivatives); else detached copies
+        double = torch.is_grad_enabled()
+        tensors = list(ctx.saved_tensors) if double else [
+            t.detach().requires_grad_(t.requires_grad) for t in ctx.saved_tensors]
+        with torch.enable_grad():
+            out = ctx.run(tensors[:ctx.n_light], *tensors[ctx.n_light:])
+        wrt = [t for t in tensors if t.requires_grad]
+        got = iter(torch.autograd.grad(out, wrt, grad, allow_unused=True,
+                                       create_graph=double) if wrt else ())
+        return (None, None) + tuple(next(got) if t.requires_grad else None for t in tensors)
+
+
+def _recomputed_chunk(kind, lights, item, pos, nrm, eye, base, metal, rough, vis,
+                      multiscatter):
+    """:func:`_lit_chunk` through :class:`_RecomputedChunk` (gradients to every input and
+    light tensor)."""
+    fields = [f.name for f in dataclasses.fields(lights) if isinstance(
+        getattr(lights, f.name), torch.Tensor)]
+    inputs = [pos, nrm, eye, base, metal, rough] + ([] if vis is None else [vis])
+
+    def run(light_tensors, *xs):
+        part = dataclasses.replace(lights, **dict(zip(fields, light_tensors, strict=True)))
+        return _lit_chunk(kind, part, item, *xs[:6], xs[6] if len(xs) > 6 else None,
+                          multiscatter)
+
+    return _RecomputedChunk.apply(run, len(fields), *[getattr(lights, f) for f in fields],
+                                  *inputs)
+
+
 def _fused_item(kind, lights, item, attrs, vis_i, per, use_ckpt, acc, multiscatter):
     """:func:`_fused_direct` of one batch item: its packed ``attrs`` (position, raw normal,
     eye, albedo, metallic, roughness), visibility ``(L, M)`` or None, pixel chunks of
@@ -358,9 +405,9 @@ def _fused_item(kind, lights, item, attrs, vis_i, per, use_ckpt, acc, multiscatt
         cut = slice(s0, s0 + per)
         vis = None if vis_i is None else vis_i[:, cut]
         if use_ckpt:
-            rad = checkpoint(_lit_chunk, kind, lights, item, pos[:, cut], nrm[:, cut], eye,
-                             base[:, cut], metal[:, cut], rough[:, cut], vis, multiscatter,
-                             use_reentrant=False)
+            rad = _recomputed_chunk(kind, lights, item, pos[:, cut], nrm[:, cut], eye,
+                                    base[:, cut], metal[:, cut], rough[:, cut], vis,
+                                    multiscatter)
         else:
             rad = cook_torrance_lights(kind, lights, item, pos[:, cut], n[:, cut], v[:, cut],
                                        base[:, cut], metal[:, cut], rough[:, cut], vis,
