@@ -74,9 +74,8 @@ LIGHT_CHUNK_ELEMENTS: int = 2**22
 PIXEL_LIGHT_CHUNK: int = 2**16
 
 #: With autograd on, the fused pass takes this many times larger chunks (fewer, larger
-#: autograd graphs; memory stays bounded by the chunk when chunks are checkpointed). With
-#: many lights, 1 holds less resident memory (malloc reuses smaller holes) at up to 1.6x
-#: the time: 16 lights at 512² x 8, 384 -> 282 B/px (docs/benchmarks.md, memory).
+#: autograd graphs; memory stays bounded by the chunk when chunks are checkpointed: 16
+#: lights at 512² x 8 hold the same with 1 or 8, docs/benchmarks.md, memory).
 GRAD_CHUNK_FACTOR: int = 8
 
 #: The fused pass evaluates the BRDF only at the pixel-lights a light reaches (n.l > 0,
