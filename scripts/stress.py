@@ -36,7 +36,8 @@ zero-area triangle), rendered forward and backward through ``tr.Renderer``:
   or dissolve). Half of their scenes ask for every channel of the frame, half for some
   label channels only, so the surface channels only the lighting reads stay packed
   (``plan.packed``); half of those are rendered again with every channel and must give
-  the same image bit for bit ("packed surface differs").
+  the same image bit for bit ("packed surface differs"). A third light in pixel chunks of
+  16 pixel-lights x 8, each recomputed in backward (the path of large frames).
 - labels: the label channels (instance, semantic, object_coords, distance, amodal, face_id)
   of the same stage as three objects, in float32, float64, float16 or bfloat16, supersampled
   1x to 3x, batch 1-2 (with face_ranges dropping an object), sometimes a MASK cut-out; the
@@ -110,7 +111,7 @@ from torchraster.motion import OtherFrame
 from torchraster.numerics import to_compute
 from torchraster.raster import rasterize_coverage
 from torchraster.renderer import _clip_positions  # the renderer's own clip positions
-from torchraster.shading import shadows
+from torchraster.shading import lighting, shadows
 from torchraster.testing.reference_raster import (
     look_at_matrix,
     perspective_matrix,
@@ -686,7 +687,14 @@ def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
     # lighting reads stay packed (plan.packed) where the plan allows
     channels = ONE_FRAME_CHANNELS if _chance(gen, 0.5) else tuple(
         ch for ch in ONE_FRAME_CHANNELS if ch not in SURFACE_CHANNELS and _chance(gen, 0.5))
-    out = renderer(scene, view, proj, lights, env, channels=channels)
+    # a third of the scenes light in small pixel chunks, each recomputed in backward (what
+    # a large frame does; these frames are too small to be chunked otherwise)
+    default_chunk = lighting.PIXEL_LIGHT_CHUNK
+    lighting.PIXEL_LIGHT_CHUNK = 16 if _chance(gen, 0.33) else default_chunk
+    try:
+        out = renderer(scene, view, proj, lights, env, channels=channels)
+    finally:
+        lighting.PIXEL_LIGHT_CHUNK = default_chunk
     c["covered"] += int((out.alpha > 0).sum())
     c["nonfinite_image"] += _nonfinite(out.image)
     c["nonfinite_alpha"] += _nonfinite(out.alpha)
