@@ -452,3 +452,40 @@ def test_edge_subsamples_keep_the_faces_they_read():
     # the shadow is in the image: without the triangle the strip is brighter
     lit = r(tr.RenderScene(pos, faces[:2], materials=[MATERIAL]), view, proj, light)
     assert float(lit.image.sum()) > float(a.image.sum()) * 1.05
+
+
+@pytest.mark.parametrize("case", ["lights per item", "positions per item", "face ranges",
+                                  "fog"])
+def test_maps_are_shared_only_when_every_item_reads_the_same(case):
+    """Maps are shared by the batch for lights of batch 1 over one mesh without face
+    ranges (also read by the fog march); per-item lights, per-item vertices and different
+    meshes keep per-item maps. Every case renders each item as it renders alone."""
+    scene = _floor_scene()
+    view, proj = _cameras(2)
+    st = ShadowSettings(map_size=32)
+    lights = _lights(st, 1)
+    fog = None
+    if case == "lights per item":  # the second item's point lights moved
+        lights = _lights(st, 2)
+        pos = lights.point.position.clone()
+        pos[1] += torch.tensor([0.7, 0.3, -0.4])
+        lights = dataclasses.replace(lights, point=dataclasses.replace(lights.point,
+                                                                       position=pos))
+    elif case == "positions per item":  # the second item's casters raised
+        lifted = scene.positions.clone()
+        lifted[scene.positions[:, 1] > 0.01] += torch.tensor([0.3, 0.2, 0.0])
+        scene = dataclasses.replace(scene, positions=torch.stack([scene.positions, lifted]))
+    elif case == "face ranges":  # item 1 draws the floor only
+        floor = int((~scene.cast_shadows).nonzero().max()) + 1
+        first = int((~scene.cast_shadows).nonzero().min())
+        scene = dataclasses.replace(scene, face_ranges=torch.tensor(
+            [[0, scene.faces.shape[0]], [first, floor]]))
+    else:
+        fog = tr.Fog(density=0.2, steps=4, jitter=False)
+    r = tr.Renderer(24, fog=fog)
+    one_by_one = tr.Renderer(24, fog=fog, raster=tr.RasterSettings(max_batch=1))
+    with torch.no_grad():
+        whole = r(scene, view, proj, lights)
+        alone = one_by_one(scene, view, proj, lights).image
+    torch.testing.assert_close(whole.image, alone, rtol=1e-6, atol=1e-6)
+    assert not torch.allclose(alone[0], alone[1])

@@ -1073,12 +1073,11 @@ class Renderer(nn.Module):
                                     torch.cumsum(cast.to(torch.int64), 0)])
                 face_ranges = before.to(face_ranges.device)[face_ranges]
         bounds = _caster_bounds(positions, faces, face_ranges, b)
-        # point / spot lights and casters shared by every item (one scene seen by B
-        # cameras): one set of maps for the batch, read by every item (memory: not B
-        # copies of the same maps); the fog march reads maps per item
-        shared = (b > 1 and lights.batch_size in (None, 1) and face_ranges is None
-                  and (positions.dim() == 2 or positions.shape[0] == 1) and not plan.fog)
-        lights_1 = lights.to(device=positions.device, dtype=positions.dtype)
+        # casters shared by every item (one mesh, no face ranges): point / spot views of
+        # the lights as given, so lights of batch 1 (one scene seen by B cameras) have one
+        # set of maps for the batch, read by every item (memory: not B copies of them)
+        shared = face_ranges is None and (positions.dim() == 2 or positions.shape[0] == 1)
+        given = lights.to(device=positions.device, dtype=positions.dtype)
         lights = lights.expand(b) if lights.batch_size == 1 and b > 1 else lights
         lights = lights.to(device=positions.device, dtype=positions.dtype)
         groups: list[ShadowMaps] = []
@@ -1089,7 +1088,7 @@ class Renderer(nn.Module):
                                       proj.to(positions.dtype), receiver_bounds=scene_bounds)
             else:
                 if shared:
-                    part = getattr(lights_1, kind).select(torch.tensor(ids))
+                    part = getattr(given, kind).select(torch.tensor(ids))
                 g = local_views(kind, part.position,
                                 part.direction if kind == "spot" else None,
                                 part.outer_cone_angle if kind == "spot" else None, settings,
