@@ -268,3 +268,28 @@ def test_recomputed_chunks_give_the_light_gradients_and_second_derivatives() -> 
     for a, c in zip(*results, strict=True):
         torch.testing.assert_close(a, c, rtol=1e-10, atol=1e-12)
         assert bool(a.abs().sum() > 0)
+
+
+@pytest.mark.parametrize("extra", ["ambient", "emissive", "none"])
+def test_uncovered_pixels_are_zero_with_autograd(extra: str) -> None:
+    # with a graph, shade masks its radiance only when ambient or IBL light (made from the
+    # whole frame) is added to the fused pass; the fused pass and emissive (masked when
+    # read) leave uncovered pixels 0 themselves
+    g = torch.Generator().manual_seed(3)
+    b, h, w = 2, 5, 6
+    mask = (torch.rand(b, 1, h, w, generator=g) > 0.4).float()
+    gb = GBuffer(position=torch.randn(b, 3, h, w, generator=g),
+                 normal=torch.randn(b, 3, h, w, generator=g),
+                 albedo=torch.rand(b, 3, h, w, generator=g).requires_grad_(True),
+                 metallic=torch.rand(b, 1, h, w, generator=g),
+                 roughness=torch.rand(b, 1, h, w, generator=g),
+                 emissive=torch.rand(b, 3, h, w, generator=g) + 1.0 if extra == "emissive"
+                 else None, mask=mask)
+    lights = Lights(point=tr.PointLights(position=torch.tensor([[[0.0, 3.0, 2.0]]]),
+                                         color=torch.ones(1, 1, 3), intensity=torch.ones(1, 1)),
+                    ambient=torch.rand(1, 9, 3, generator=g) if extra == "ambient" else None)
+    rad = shade(gb, camera_position=torch.tensor([[0.0, 0.0, 4.0]]).expand(b, 3),
+                lights=lights)
+    assert rad.requires_grad
+    assert bool((rad.masked_select(mask.expand_as(rad) == 0) == 0).all())
+    assert bool((rad.masked_select(mask.expand_as(rad) > 0) != 0).any())

@@ -639,13 +639,14 @@ def shade(
     elif fused_direct and no_grad:
         frame = torch.zeros(b, 3, h * w, device=dev, dtype=dt)
 
+    n_covered = b * h * w if covered is None else int(covered.sum())
     pieces = starts = None
     if store is not None:  # each item's columns of the packed channels (views)
         starts = store.item_starts(b, h, w)
-        if starts[-1] != int(covered.sum()) or starts[0] != 0:
+        if starts[-1] != n_covered or starts[0] != 0:
             raise ValueError(f"gbuffer.packed: {store.pixels.numel()} pixels of which "
                              f"{starts[-1] - starts[0]} in the frame, but the mask covers "
-                             f"{int(covered.sum())}")
+                             f"{n_covered}")
         counts = [e - s for s, e in zip(starts[:-1], starts[1:], strict=True)]
         pieces = [store.values[ch].split(counts, dim=1) if t is None else None
                   for ch, t in zip(surface_names, (position, normal, albedo, metallic,
@@ -669,7 +670,6 @@ def shade(
         _scatter_item(frame, item, items.pop(item)[0], acc[item])
         acc[item] = None
 
-    n_covered = b * h * w if covered is None else int(covered.sum())
     for kind, part in kinds:
         name = {DirectionalLights: "directional", PointLights: "point", SpotLights: "spot"}[kind]
         slices = _chunks(part.count, per_chunk)
@@ -743,7 +743,8 @@ def shade(
         radiance = radiance + prep(emissive)
     if covered is not None and no_grad:
         radiance.masked_fill_(~covered, 0.0)
-    elif covered is not None and not (fused_direct and indirect is None and emissive is None):
-        # (the fused pass alone writes covered pixels only, into zeros: no masked copy)
+    elif covered is not None and not (fused_direct and indirect is None):
+        # (the fused pass writes covered pixels only, into zeros, and emissive was masked by
+        # prep: no masked copy)
         radiance = torch.where(covered, radiance, 0.0)
     return finish_low_precision(radiance, out_dtype)
