@@ -489,3 +489,23 @@ def test_maps_are_shared_only_when_every_item_reads_the_same(case):
         alone = one_by_one(scene, view, proj, lights).image
     torch.testing.assert_close(whole.image, alone, rtol=1e-6, atol=1e-6)
     assert not torch.allclose(alone[0], alone[1])
+
+
+def test_a_shared_group_needs_the_faces_any_item_reads(monkeypatch):
+    """A group of batch 1 culled against receivers of two items keeps the union of the
+    faces each item's points select (1-pixel tiles: exact); a group of another batch
+    size is refused."""
+    monkeypatch.setattr(shadows, "CULL_TILE", 1)
+    light = torch.tensor([[[0.0, 0.0, 0.0]]])
+    box = torch.tensor([[[-3.0, -3.0, -3.0], [3.0, 3.0, 3.0]]])
+    g = local_views("point", light, None, None, ShadowSettings(map_size=32), box)
+    pts = torch.zeros(2, 3, 1, 1)
+    pts[0, :, 0, 0] = torch.tensor([2.0, 0.1, 0.2])  # item 0: the +X face
+    pts[1, :, 0, 0] = torch.tensor([0.1, -0.2, -2.0])  # item 1: the -Z face
+    cull_local_views(g, [(pts, torch.ones(2, 1, 1, 1, dtype=torch.bool))])
+    assert g.needed.shape == (1, 1, 6)
+    assert g.needed[0, 0].tolist() == [True, False, False, False, False, True]
+    three = local_views("point", light.expand(3, 1, 3), None, None,
+                        ShadowSettings(map_size=32), box.expand(3, 2, 3))
+    with pytest.raises(ValueError, match=r"batch sizes \[2, 3\]"):
+        cull_local_views(three, [(pts, torch.ones(2, 1, 1, 1, dtype=torch.bool))])

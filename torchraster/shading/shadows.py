@@ -836,10 +836,15 @@ def cull_local_views(groups: ShadowMaps | Sequence[ShadowMaps],
     if not CULL_VIEWS or not groups or not (points or segments is not None
                                             or boxes is not None):
         return
-    # the receivers' batch; a group of batch 1 (maps shared by every item) is read by all
-    b = max([g.view.shape[0] for g in groups] + [pos.shape[0] for pos, _ in points]
-            + ([segments[0].shape[0]] if segments is not None else [])
-            + ([boxes.shape[0]] if boxes is not None else []))
+    # the batch; receivers or a group of batch 1 are shared by every item (a group's maps
+    # then read by all)
+    sizes = ([g.view.shape[0] for g in groups] + [pos.shape[0] for pos, _ in points]
+             + ([segments[0].shape[0]] if segments is not None else [])
+             + ([boxes.shape[0]] if boxes is not None else []))
+    b = max(sizes)
+    if any(n not in (1, b) for n in sizes):
+        raise ValueError(f"cull_local_views: batch sizes {sorted(set(sizes))} of the groups "
+                         "and receivers; expected 1 (shared) or one common size")
     dt = torch.float64
     dev = groups[0].view.device
     scale = torch.zeros(b, dtype=dt, device=dev)  # (B,) the largest coordinate of each item
