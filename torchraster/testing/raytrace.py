@@ -171,7 +171,9 @@ def occluded(origins: torch.Tensor, dirs: torch.Tensor, t_max: torch.Tensor,
     return hit
 
 
-def _origins(points: torch.Tensor, normals: torch.Tensor, eps: float) -> torch.Tensor:
+def ray_origins(points: torch.Tensor, normals: torch.Tensor, eps: float) -> torch.Tensor:
+    """``(N, 3)`` float64 shadow-ray origins: ``points`` moved ``eps`` along their unit
+    ``normals`` (both ``(N, 3)``)."""
     n = normals.to(F64)
     n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-300)
     return points.to(F64) + eps * n
@@ -195,7 +197,7 @@ def shadow_rays(points: torch.Tensor, normals: torch.Tensor, positions: torch.Te
     Returns:
         ``(N,)`` float64: 1 lit, 0 occluded.
     """
-    o = _origins(points, normals, eps)
+    o = ray_origins(points, normals, eps)
     if (direction is None) == (light_position is None):
         raise ValueError("shadow_rays: give exactly one of direction / light_position")
     if direction is not None:
@@ -255,7 +257,7 @@ def area_shadow_rays(points: torch.Tensor, normals: torch.Tensor, positions: tor
     """
     if (direction is None) == (light_position is None):
         raise ValueError("area_shadow_rays: give exactly one of direction / light_position")
-    o_all = _origins(points, normals, eps)
+    o_all = ray_origins(points, normals, eps)
     disc = disc_samples(samples).to(o_all.device)  # (S, 2)
     n_s = disc.shape[0]
     out = torch.empty(o_all.shape[0], dtype=F64, device=o_all.device)
