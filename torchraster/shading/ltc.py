@@ -1,0 +1,270 @@
+"""Linearly transformed cosines (LTC) for polygonal area lights, fitted to this renderer's
+GGX specular lobe (Heitz, Dupuy, Hill and Neubelt 2016, "Real-time polygonal-light shading
+with linearly transformed cosines", ACM TOG 35(4)).
+
+An LTC is the clamped cosine ``D_o(w) = max(w.z, 0) / pi`` pushed through a 3x3 matrix M:
+``D(w) = D_o(M^-1 w / |M^-1 w|) |det M^-1| / |M^-1 w|^3`` (Heitz et al. 2016, eq. 1). Its
+integral over a polygon P is the cosine integral over the polygon ``M^-1 P``, which has a
+closed form (:func:`polygon_form_factor`), so a polygonal light costs one edge term per
+vertex. The specular of a light of uniform radiance L is
+``L * ltc_integral(p, ltc_inverse(r, n.v)) * (f0 A + B)``, with (A, B) the split-sum DFG
+terms of :func:`torchraster.shading.ibl.dfg_lut`: the LTC carries the lobe's shape
+(normalised to integrate to 1), ``A + B`` its integral over the hemisphere.
+
+The fitted lobe (``scripts/fit_ltc.py``) is the specular of
+:func:`~torchraster.shading.lighting.cook_torrance_lights` without Fresnel,
+``rho(l) = D(h) V(l, v) (n.l)``: GGX D with ``alpha = r^2``,
+perceptual roughness r clamped to ``[MIN_ROUGHNESS, 1]``, height-correlated Smith V with
+n.v and n.l floored at ``MIN_COS``.
+
+Local frame (:func:`local_frame`): rows (t1, t2, n), n = +z, the view direction in the xz
+plane with x >= 0, ``v = (sin theta_v, 0, cos theta_v)``.
+
+Table (``assets/ltc/ggx_ltc.npy``, float32, shape ``(4, R, C)``, R = C = 32): channel k
+holds entry k of ``(a, b, c, d)`` of the inverse matrix
+
+    M^-1 = [[a, 0, b],
+            [0, c, 0],
+            [d, 0, 1]]
+
+(normalised so that its bottom-right entry is 1; an LTC does not change when M is
+scaled); row i is perceptual roughness ``r = i / (R - 1)`` (rows below MIN_ROUGHNESS hold
+the MIN_ROUGHNESS fit), column j is ``u = j / (C - 1)`` with ``n.v = 1 - u^2`` (Heitz's
+``sqrt(1 - cos theta_v)`` axis: denser towards grazing angles). Nodes at both ends; looked
+up bilinearly.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from torchraster.numerics import compute_dtype, finish_low_precision, safe_normalize
+
+#: The fitted table; written by ``scripts/fit_ltc.py``.
+TABLE_PATH: Path = Path(__file__).resolve().parent.parent / "assets" / "ltc" / "ggx_ltc.npy"
+
+#: Below this, the column axis ``u = sqrt(1 - n.v)`` continues linearly (``u = s /
+#: sqrt(SQRT_LINEAR)``, s = 1 - n.v, continuous at the switch): u(0) = 0 exactly and the
+#: gradient with respect to n.v stays finite (at most ``0.5 / sqrt(SQRT_LINEAR)`` per unit
+#: of u) at normal incidence; u moves by at most ``sqrt(SQRT_LINEAR) / 4`` (0.8 % of a cell).
+SQRT_LINEAR: float = 1e-6
+
+
+@functools.cache
+def _load_table(path: Path, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"LTC table {path} is missing: run `python scripts/fit_ltc.py` to fit it"
+        )
+    table = np.load(path)
+    if table.ndim != 3 or table.shape[0] != 4 or min(table.shape[1:]) < 2:
+        raise ValueError(f"LTC table {path}: expected shape (4, R, C), got {table.shape}")
+    return torch.from_numpy(table).to(device=device, dtype=dtype)
+
+
+def ltc_table(
+    device: torch.device | str | None = None, dtype: torch.dtype = torch.float32
+) -> torch.Tensor:
+    """The fitted table ``(4, R, C)``: entries (a, b, c, d) of M^-1 per (roughness, u)
+    node (layout in the module docstring). Loaded once per device and dtype and cached:
+    do not modify it in place.
+
+    Example:
+        >>> ltc_table().shape
+        torch.Size([4, 32, 32])
+    """
+    return _load_table(TABLE_PATH, torch.device(device or "cpu"), dtype)
+
+
+def ltc_inverse(roughness: torch.Tensor, n_dot_v: torch.Tensor) -> torch.Tensor:
+    """The fitted inverse LTC matrix M^-1 in the local frame (n = z, v in the xz plane),
+    bilinear in the table, differentiable with respect to both inputs.
+
+    Args:
+        roughness: perceptual roughness, clamped to [0, 1] (below MIN_ROUGHNESS the table
+            holds the MIN_ROUGHNESS fit), any shape broadcastable with ``n_dot_v``.
+        n_dot_v: cosine of the view angle, clamped to [0, 1].
+
+    Returns:
+        ``(..., 3, 3)`` M^-1 = ``[[a, 0, b], [0, c, 0], [d, 0, 1]]``, ``...`` the broadcast
+        shape of the inputs, in their promoted dtype (float16 / bfloat16: looked up in
+        float32 and cast back).
+
+    Example:
+        >>> m = ltc_inverse(torch.tensor([0.5]), torch.tensor([1.0]))
+        >>> m.shape, round(m[0, 1, 0].item(), 6), m[0, 2, 2].item()
+        (torch.Size([1, 3, 3]), 0.0, 1.0)
+    """
+    out = torch.promote_types(roughness.dtype, n_dot_v.dtype)
+    dt = compute_dtype(roughness, n_dot_v)
+    r, nv = torch.broadcast_tensors(roughness.to(dt), n_dot_v.to(dt))
+    table = ltc_table(r.device, dt)
+    rows, cols = table.shape[1:]
+    x = r.clamp(0.0, 1.0) * (rows - 1)
+    s = 1.0 - nv.clamp(0.0, 1.0)
+    big = s > SQRT_LINEAR
+    u = torch.where(big, torch.sqrt(torch.where(big, s, 1.0)), s / math.sqrt(SQRT_LINEAR))
+    y = u * (cols - 1)
+    i = x.detach().floor().clamp(0, rows - 2).long()
+    j = y.detach().floor().clamp(0, cols - 2).long()
+    fx, fy = x - i, y - j  # weights carry the gradients
+    abcd = ((table[:, i, j] * (1 - fy) + table[:, i, j + 1] * fy) * (1 - fx)
+            + (table[:, i + 1, j] * (1 - fy) + table[:, i + 1, j + 1] * fy) * fx)
+    a, b, c, d = abcd.unbind(0)
+    zero, one = torch.zeros_like(a), torch.ones_like(a)
+    m_inv = torch.stack((a, zero, b, zero, c, zero, d, zero, one), -1)
+    return finish_low_precision(m_inv.unflatten(-1, (3, 3)), out)
+
+
+def _unit(x: torch.Tensor) -> torch.Tensor:
+    """``x / |x|`` over the last axis, 0 (zero gradient) for vectors whose squared length
+    underflows: scale-free, unlike the default threshold of ``safe_normalize``."""
+    return safe_normalize(x, dim=-1, eps=torch.finfo(x.dtype).tiny)
+
+
+def _edge_integral(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``theta * normalize(b x a).z`` for the edge from ``a`` to ``b`` (..., 3), theta the
+    angle between them: one term of the vector form factor (Lambert; Baum, Rushmeier and
+    Winget 1989, eq. 7; Arvo 1995). ``theta / sin(theta) = atan2(|b x a|, a.b) / |b x a|``,
+    accurate at every angle. Where ``|b x a| <= eps`` the term is 0 (value and gradient):
+    a degenerate edge (a = b, or an edge shorter than rounding: exactly 0 however the cross
+    product rounds), the shading point on the edge (a = -b: the limit depends on the side)
+    or on a vertex (a = 0). Returns ``(...)``."""
+    a, b = _unit(a), _unit(b)
+    c = torch.linalg.cross(b, a, dim=-1)
+    sin2 = (c * c).sum(-1)
+    ok = sin2 > torch.finfo(a.dtype).eps ** 2
+    sin = torch.sqrt(torch.where(ok, sin2, torch.ones_like(sin2)))
+    theta = torch.atan2(sin, (a * b).sum(-1))
+    return torch.where(ok, theta / sin * c[..., 2], torch.zeros_like(sin))
+
+
+def polygon_form_factor(p: torch.Tensor) -> torch.Tensor:
+    """Cosine-weighted solid angle of a convex polygon above the horizon, over pi.
+
+    ``F = integral over {w in P, w.z >= 0} of w.z dw / pi``, exact: the polygon is
+    clipped to the horizon z = 0 (the clamped parts of its edges plus one edge along the
+    horizon from the exit to the entry point; fixed shapes, per-edge masks) and the
+    clipped polygon's integral is the edge sum ``1 / (2 pi) sum_i theta_i
+    normalize(p_{i+1} x p_i).z`` (Lambert's formula; Baum, Rushmeier and Winget 1989,
+    "Improving radiosity solutions through the use of analytically determined
+    form-factors", eq. 7). A polygon covering the whole upper hemisphere gives 1.
+
+    Sign: F > 0 when the vertices run counter-clockwise as seen from the shading point
+    (the origin), i.e. when the polygon's right-hand normal
+    ``(p1 - p0) x (p2 - p1)`` points towards the origin (the light's front face is
+    seen); reversing the vertex order negates F. A one-sided light uses ``max(F, 0)``, a
+    two-sided one ``|F|``.
+
+    Vertices may repeat (a degenerate edge contributes exactly 0: pad polygons to a common
+    K by repeating a vertex); a polygon entirely below the horizon gives exactly 0; a
+    shading point in the polygon's plane, on an edge or on a vertex gives finite values
+    and gradients.
+
+    Args:
+        p: ``(..., K, 3)`` vertices, K >= 3, relative to the shading point in a frame whose
+            z axis is the surface normal (not normalised; any scale).
+
+    Returns:
+        ``(...)`` F, dimensionless, in [-1, 1].
+
+    Example:
+        >>> square = torch.tensor([[1.0, 1, 1], [-1, 1, 1], [-1, -1, 1], [1, -1, 1]])
+        >>> round(polygon_form_factor(square.flip(0)).item(), 4)  # seen counter-clockwise
+        0.5541
+        >>> round(polygon_form_factor(square).item(), 4)  # its back face
+        -0.5541
+    """
+    dt = compute_dtype(p)
+    a = p.to(dt)
+    b = a.roll(-1, dims=-2)  # edge i runs from vertex i to vertex i + 1
+    za, zb = a[..., 2], b[..., 2]
+    above_a, above_b = za >= 0, zb >= 0
+    crosses = above_a != above_b
+    t = za / torch.where(crosses, za - zb, torch.ones_like(za)) * crosses
+    x = torch.lerp(a, b, t[..., None])  # where the edge crosses the horizon (exact ends)
+    x = torch.cat((x[..., :2], torch.zeros_like(x[..., 2:])), -1)  # z = 0 exactly
+    start = torch.where(above_a[..., None], a, x)
+    end = torch.where(above_b[..., None], b, x)
+    edges = torch.where(above_a | above_b, _edge_integral(start, end), 0.0).sum(-1)
+    # a convex polygon crosses the horizon at most once each way: the masked sums pick
+    # the exit and entry points (both 0, and the horizon term 0, when it does not cross)
+    exit_point = (x * (above_a & ~above_b)[..., None]).sum(-2)
+    entry_point = (x * (~above_a & above_b)[..., None]).sum(-2)
+    horizon = _edge_integral(exit_point, entry_point)
+    return finish_low_precision((edges + horizon) / (2.0 * math.pi), p.dtype)
+
+
+def ltc_integral(p: torch.Tensor, m_inv: torch.Tensor) -> torch.Tensor:
+    """Integral of the LTC ``M`` over a polygon: the cosine integral over the transformed
+    polygon ``M^-1 p`` (Heitz et al. 2016, section 3.3; the edge formula normalises, so
+    the vertices need not be). Same sign convention as :func:`polygon_form_factor` (M^-1
+    from :func:`ltc_inverse` has a positive determinant, so it keeps the orientation).
+
+    Args:
+        p: ``(..., K, 3)`` vertices relative to the shading point in the local frame of
+            :func:`local_frame`.
+        m_inv: ``(..., 3, 3)`` M^-1 (:func:`ltc_inverse`), broadcastable with ``p``'s
+            leading dims.
+
+    Returns:
+        ``(...)`` the LTC's integral over the polygon (its normalised shading integral:
+        multiply by the lobe's norm, ``f0 A + B``).
+
+    Example:
+        >>> square = torch.tensor([[1.0, 1, 1], [1, -1, 1], [-1, -1, 1], [-1, 1, 1]])
+        >>> round(ltc_integral(square, torch.eye(3)).item(), 4)  # M = I: the cosine lobe
+        0.5541
+    """
+    dt = compute_dtype(p, m_inv)
+    q = p.to(dt) @ m_inv.to(dt).transpose(-1, -2)  # rows: M^-1 p_k
+    return finish_low_precision(polygon_form_factor(q), torch.promote_types(p.dtype, m_inv.dtype))
+
+
+def _any_tangent(n: torch.Tensor) -> torch.Tensor:
+    """A unit vector orthogonal to the unit vector ``n`` (..., 3), branch-free and smooth
+    away from n.z = 0 (Duff, Burgess, Christensen, Hery, Kensler, Liani and Villemin 2017,
+    "Building an orthonormal basis, revisited", listing 3)."""
+    x, y, z = n.unbind(-1)
+    sign = torch.where(z >= 0, 1.0, -1.0).to(n.dtype)
+    k = -1.0 / (sign + z)
+    return torch.stack((1.0 + sign * x * x * k, sign * x * y * k, -sign * x), -1)
+
+
+def local_frame(n: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """The shading frame of the LTC: rows (t1, t2, n), ``t1 = normalize(v - n (n.v))``,
+    ``t2 = n x t1`` (right-handed: a rotation, so polygon orientations are kept), so that
+    ``p_local = frame @ p_world`` puts the normal on +z and v in the xz plane with x >= 0.
+    When v is parallel to n, t1 is any tangent (the lobe is then rotationally symmetric);
+    values and gradients stay finite.
+
+    Args:
+        n: ``(..., 3)`` surface normal (normalised here; a zero normal gives a singular,
+            finite frame).
+        v: ``(..., 3)`` direction to the eye (any length), broadcastable with ``n``.
+
+    Returns:
+        ``(..., 3, 3)`` rotation, the broadcast shape of the inputs.
+
+    Example:
+        >>> f = local_frame(torch.tensor([0.0, 1.0, 0.0]), torch.tensor([0.0, 1.0, 1.0]))
+        >>> (f @ torch.tensor([0.0, 1.0, 1.0])).tolist()
+        [1.0, 0.0, 1.0]
+    """
+    dt = compute_dtype(n, v)
+    n, v = torch.broadcast_tensors(n.to(dt), v.to(dt))
+    n = _unit(n)
+    w = v - n * (n * v).sum(-1, keepdim=True)
+    w = w - n * (n * w).sum(-1, keepdim=True)  # twice is enough: orthogonal to rounding
+    sq = (w * w).sum(-1, keepdim=True)
+    fi = torch.finfo(dt)  # |w| < sqrt(eps) |v|: v within ~3e-4 rad (float32) of n: any t1
+    ok = sq > ((v * v).sum(-1, keepdim=True) * fi.eps).clamp_min(fi.tiny)
+    t1 = torch.where(ok, w * torch.rsqrt(torch.where(ok, sq, torch.ones_like(sq))),
+                     _any_tangent(n))
+    t2 = torch.linalg.cross(n, t1, dim=-1)
+    return torch.stack((t1, t2, n), -2)
