@@ -26,7 +26,10 @@ zero-area triangle), rendered forward and backward through ``tr.Renderer``:
   ambient light;
 - light: hostile lights: intensities and colours 0 / 1e-40 / 1e6, directions grazing the
   plane, from below or of length 1e-15, point and spot lights exactly on a vertex, inside
-  the sphere or 1e6 away, ranges 1e-6 to inf, cones of zero width or pi/2;
+  the sphere or 1e6 away, ranges 1e-6 to inf, cones of zero width or pi/2; in half of the
+  scenes 1-3 area lights (rectangles and discs, one- or two-sided, half-extents 1e-6 to
+  1e3 m, at the same hostile places, casting PCSS shadows or not; dropped where shading is
+  not pbr or fog is on, which refuse them);
 - environment: hostile environment maps (1 to 32 rows; zero, denormal, a single 1e6 texel),
   intensities 0 to 1e6, both diffuse methods, shown as background or not;
 - grazing: all of the above at random, cameras edge-on to the plane (elevation 0 or 1e-4
@@ -56,7 +59,8 @@ zero-area triangle), rendered forward and backward through ``tr.Renderer``:
   render returns each input's gradient saturated, and the stage's float16 leaf sums two of
   them (this frame's positions and the other frame's, made from them) to Inf in float16.
 - half: the stage in float16 / bfloat16 with float textures (up to 300 texels), a sun
-  (sometimes straight down) and a spot light casting shadows with every filter (PCF and
+  (sometimes straight down), in half of the scenes an area light (a panel or a disc above
+  the stage, casting shadows or not) and a spot light casting shadows with every filter (PCF and
   PCSS with a pixel-footprint radius of 0, 0.56 or 8 pixels at random), every texture
   filter, antialiasing on or off, else edge antialiasing (``edge_supersample`` 1 to 3),
   in 40 % of the scenes under a hostile float32 environment (every specular mode).
@@ -418,13 +422,13 @@ R_COLUMNS = [
     ("grad_values", "gradient values checked"), ("label_errors", "label errors"),
     ("motion_errors", "motion errors"), ("far_errors", "far-away errors"),
     ("nograd_differs", "no-grad render differs"),
-    ("packed", "packed surface compared"),
+    ("packed", "packed surface compared"), ("area_lit", "area-lit scenes"),
     ("packed_differs", "packed surface differs from frames"),
     ("motion_f16_overflow", "float16 flow grad overflow (known, not counted)"),
     ("rejected", "rejected (ValueError/TypeError)"), ("exceptions", "exceptions"),
 ]
 R_PROBLEMS = {key for key, _ in R_COLUMNS} - {"scenes", "covered", "grad_values", "rejected",
-                                               "motion_f16_overflow", "packed"}
+                                               "motion_f16_overflow", "packed", "area_lit"}
 
 
 def _pick(gen: torch.Generator, options: tuple | list):
@@ -567,7 +571,26 @@ def _lights(gen: torch.Generator, hostile: bool, positions: torch.Tensor,
                                                   for _ in range(n)]], dtype=dtype),
                              inner_cone_angle=torch.tensor([[c[0] for c in cones]], dtype=dtype),
                              outer_cone_angle=torch.tensor([[c[1] for c in cones]], dtype=dtype))
-    return tr.Lights(ambient=ambient, directional=directional, point=point, spot=spot)
+    area = _area_lights(gen, places, leaf, dtype) if _chance(gen, 0.5) else None
+    return tr.Lights(ambient=ambient, directional=directional, point=point, spot=spot,
+                     area=area)
+
+
+def _area_lights(gen: torch.Generator, places, leaf, dtype: torch.dtype) -> tr.AreaLights:
+    """1-3 hostile area lights: rectangles and discs at the hostile places, half-extents of
+    1e-6 to 1e3 m (a sliver sometimes), one- or two-sided, casting shadows or not."""
+    n = _randint(gen, 1, 3)
+    u, v = [], []
+    for _ in range(n):
+        a = torch.randn(3, generator=gen, dtype=torch.float64)
+        b = torch.linalg.cross(a, torch.randn(3, generator=gen, dtype=torch.float64))
+        u.append(a / a.norm() * _pick(gen, (1e-6, 0.3, 1.0, 1e3)))
+        v.append(b / b.norm() * _pick(gen, (1e-6, 0.3, 1.0)))
+    flags = [[_chance(gen, 0.5) for _ in range(n)] for _ in range(3)]
+    return tr.AreaLights(leaf(places(n)), leaf(torch.stack(u)[None]), leaf(torch.stack(v)[None]),
+                         leaf(_hostile(gen, (1, n, 3))), leaf(_hostile(gen, (1, n))),
+                         disc=torch.tensor([flags[0]]), two_sided=torch.tensor([flags[1]]),
+                         cast_shadows=torch.tensor([flags[2]]))
 
 
 def _environment(gen: torch.Generator, dtype: torch.dtype, params: list[torch.Tensor]):
@@ -678,6 +701,8 @@ def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
     textures = tr.TextureSettings(
         filter=_pick(gen, ("trilinear", "bilinear", "nearest", "anisotropic")))
     multiscatter = _chance(gen, 0.8)
+    if shading != "pbr" or fog is not None:  # area lights are shaded by pbr without fog
+        lights = dataclasses.replace(lights, area=None)
     renderer = tr.Renderer(
         res, shading=tr.ShadingSettings(shading, multiscatter=multiscatter or shading != "pbr"),
         raster=raster, textures=textures, ssao=ssao, ssr=ssr, fog=fog, dissolve=dissolve,
@@ -696,6 +721,7 @@ def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
     finally:
         lighting.PIXEL_LIGHT_CHUNK = default_chunk
     c["covered"] += int((out.alpha > 0).sum())
+    c["area_lit"] += int(any(kind == "area" for kind, _ in out.plan.lights))
     c["nonfinite_image"] += _nonfinite(out.image)
     c["nonfinite_alpha"] += _nonfinite(out.alpha)
     c["nonfinite_gbuffer"] += sum(_nonfinite(v) for v in out.gbuffer.values())
@@ -751,6 +777,15 @@ def scene_half(gen: torch.Generator, c: Counter) -> None:
                            torch.ones(1, 1, 3, dtype=dtype), torch.full((1, 1), 20.0,
                                                                         dtype=dtype),
                            cast_shadows=torch.tensor([[_chance(gen, 0.5)]])))
+    if _chance(gen, 0.5):  # a panel or disc above the stage, maybe shadowed (PCSS)
+        panel = torch.tensor([[[_rand(gen, -1.0, 1.0), 2.0, _rand(gen, -1.0, 1.0)]]])
+        lights.area = tr.AreaLights(panel.to(dtype).requires_grad_(True),
+                                    torch.tensor([[[0.6, 0.0, 0.0]]], dtype=dtype),
+                                    torch.tensor([[[0.0, 0.0, 0.4]]], dtype=dtype),
+                                    torch.ones(1, 1, 3, dtype=dtype),
+                                    torch.full((1, 1), 8.0, dtype=dtype),
+                                    disc=torch.tensor([[_chance(gen, 0.5)]]),
+                                    cast_shadows=torch.tensor([[_chance(gen, 0.5)]]))
     scene = tr.RenderScene(positions, faces, uvs=uvs.to(dtype), face_material=face_material,
                            materials=materials)
     view = tr.camera.orbit(torch.tensor([_rand(gen, 0.0, 360.0)]),
@@ -776,16 +811,18 @@ def scene_half(gen: torch.Generator, c: Counter) -> None:
     env = _environment(gen, torch.float32, env_params) if _chance(gen, 0.4) else None
     out = renderer(scene, view, proj, lights, env)  # in float32 for them, every mode)
     c["covered"] += int((out.alpha > 0).sum())
+    c["area_lit"] += int(lights.area is not None)
     c["nonfinite_image"] += _nonfinite(out.image)
     c["nonfinite_alpha"] += _nonfinite(out.alpha)
     loss = (out.image.float() * torch.randn(out.image.shape, generator=gen)).sum()
-    leaves = [positions, *textures, sun, *env_params]
+    panel = [lights.area.position] if lights.area is not None else []
+    leaves = [positions, *textures, sun, *panel, *env_params]
     grads = torch.autograd.grad(loss, leaves, allow_unused=True)
     c["grad_values"] += sum(g.numel() for g in grads if g is not None)
     c["nonfinite_grad_positions"] += _nonfinite(grads[0])
     c["nonfinite_grad_material"] += sum(_nonfinite(g) for g in grads[1:3])
-    c["nonfinite_grad_lights"] += _nonfinite(grads[3])
-    c["nonfinite_grad_environment"] += sum(_nonfinite(g) for g in grads[4:])
+    c["nonfinite_grad_lights"] += sum(_nonfinite(g) for g in grads[3:4 + len(panel)])
+    c["nonfinite_grad_environment"] += sum(_nonfinite(g) for g in grads[4 + len(panel):])
 
 
 LABELS = ["instance", "semantic", "object_coords", "distance", "amodal", "face_id", "depth"]

@@ -43,6 +43,7 @@ METADATA: dict[str, str] = {
     "lights.directional.name": "a label for the user; not used by rendering",
     "lights.point.name": "a label for the user; not used by rendering",
     "lights.spot.name": "a label for the user; not used by rendering",
+    "lights.area.name": "a label for the user; not used by rendering",
     "outputs.formats": "file encodings (png / npy / exr) of the same images "
                        "(tests/test_config_cli.py checks the files)",
     "scene.objects.name": "a label; the default material name of a primitive "
@@ -64,9 +65,9 @@ NOT_IMPLEMENTED: set[str] = {"post.auto_exposure.rate"}
 
 #: Fields that are refused with a ConfigError naming them where they cannot act: the
 #: cascade fields of point and spot lights' shadows.
-REFUSED: set[str] = {f"lights.{kind}.shadows.{key}" for kind in ("point", "spot")
+REFUSED: set[str] = {f"lights.{kind}.shadows.{key}" for kind in ("point", "spot", "area")
                      for key in ("cascades", "split_lambda", "cascade_blend",
-                                 "max_distance")}
+                                 "max_distance")} | {"lights.area.shadows.light_size"}
 
 #: Fields whose base config is expected to fail (the change makes it render).
 BASE_FAILS: dict[str, type[BaseException]] = {"scene.allow_missing_textures": tr.ConfigError,
@@ -78,6 +79,10 @@ POINT = {"type": "point", "position": [0.8, 1.6, 0.6], "intensity": 4.0}
 SPOT = {"type": "spot", "position": [0.0, 2.5, 0.0], "direction": [0.0, -1.0, 0.0],
         "intensity": 8.0, "inner_cone_angle": 0.2, "outer_cone_angle": 0.5}
 AMBIENT = {"type": "ambient", "color": [0.3, 0.3, 0.3]}
+AREA = {"type": "area", "position": [0.3, 1.5, 0.2], "direction": [-0.2, -1.0, 0.0],
+        "size": [1.0, 0.5], "intensity": 4.0}
+DISC = {"type": "area", "shape": "disc", "position": [0.3, 1.5, 0.2],
+        "direction": [0.0, -1.0, 0.0], "radius": 0.3, "intensity": 4.0}
 SH = [[0.2, 0.2, 0.2]] + [[0.0, 0.1, 0.05]] * 8
 
 
@@ -173,8 +178,10 @@ CASCADE_KEYS = ("cascades", "split_lambda", "cascade_blend", "max_distance")
 
 def _shadow_variation(kind: str, light: dict, key: str) -> tuple[dict, dict]:
     base, change = _SHADOW_CHANGES[key]
-    if kind != "directional" and key in CASCADE_KEYS:
+    if kind != "directional" and key in CASCADE_KEYS or (kind, key) == ("area", "light_size"):
         base = {}  # refused on point / spot lights: the change alone must name the key
+    if kind == "area":  # an area light's PCSS size is its own (light_size is refused)
+        base = {k: v for k, v in base.items() if k != "light_size"}
     if (kind, key) == ("spot", "slope_bias"):
         light = SLANTED_SPOT  # a spot straight down meets the ground at slope 0
     return _shadow(light, kind, base, **change)
@@ -182,7 +189,8 @@ def _shadow_variation(kind: str, light: dict, key: str) -> tuple[dict, dict]:
 
 SHADOW_VARIATIONS = {
     f"lights.{kind}.shadows.{key}": _shadow_variation(kind, light, key)
-    for kind, light in (("directional", SUN), ("point", POINT), ("spot", SPOT))
+    for kind, light in (("directional", SUN), ("point", POINT), ("spot", SPOT),
+                        ("area", AREA))
     for key in _SHADOW_CHANGES}
 # cascade boundaries show with the camera close to the ground (slices smaller than the
 # scene, each cascade its own map) and more than 16 pixels
@@ -551,6 +559,21 @@ VARIATIONS: dict[str, tuple[dict, dict]] = {
     "lights.spot.inner_cone_angle": (_light(SPOT), _light(SPOT, inner_cone_angle=0.0)),
     "lights.spot.outer_cone_angle": (_light(SPOT), _light(SPOT, outer_cone_angle=0.3)),
     "lights.spot.cast_shadows": (_light(SPOT), _light(SPOT, cast_shadows=True)),
+    "lights.area.type": (_light(DISC), _light({"type": "spot", "position": DISC["position"],
+                                                "direction": DISC["direction"]})),
+    "lights.area.color": (_light(AREA), _light(AREA, color=[1.0, 0.5, 0.2])),
+    "lights.area.intensity": (_light(AREA), _light(AREA, intensity=1.0)),
+    "lights.area.position": (_light(AREA), _light(AREA, position=[-0.5, 1.2, 0.4])),
+    "lights.area.direction": (_light(AREA), _light(AREA, direction=[0.6, -1.0, 0.3])),
+    "lights.area.size": (_light(AREA), _light(AREA, size=[2.0, 0.2])),
+    "lights.area.up": (_light(AREA, size=[3.0, 0.2]), _light(AREA, size=[3.0, 0.2],
+                                                              up=[1.0, 0.0, 0.0])),
+    "lights.area.shape": (_light({**DISC, "shape": "rect", "radius": None}), _light(DISC)),
+    "lights.area.radius": (_light(DISC), _light(DISC, radius=0.8)),
+    # facing up, away from the ground and the ball: only its back side lights them
+    "lights.area.two_sided": (_light(AREA, direction=[0.0, 1.0, 0.0]),
+                              _light(AREA, direction=[0.0, 1.0, 0.0], two_sided=True)),
+    "lights.area.cast_shadows": (_light(AREA), _light(AREA, cast_shadows=True)),
     # environment
     "environment.path": ({"environment": {"path": "sky.hdr"}},
                          {"environment": {"path": "dusk.hdr"}}),

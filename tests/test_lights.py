@@ -175,7 +175,13 @@ def test_config_to_tensors() -> None:
         ({"type": "directional", "direction": [0, 1]}, "0.directional.direction"),
         ({"type": "point", "colour": [1, 1, 1]}, "0.point.colour"),
         ({"type": "ambient", "cast_shadows": True}, "0.ambient.cast_shadows"),
-        ({"type": "area"}, "0"),
+        ({"type": "laser"}, "0"),
+        ({"type": "area", "shape": "disc", "size": [1, 1]}, "0.area"),
+        ({"type": "area", "radius": 0.2}, "0.area"),
+        ({"type": "area", "size": [1, 0]}, "0.area.size.1"),
+        ({"type": "area", "direction": [0, -1, 0], "up": [0, 2, 0]}, "0.area"),
+        ({"type": "area", "shadows": {"light_size": 0.2}}, "0.area"),
+        ({"type": "area", "shadows": {"cascades": 2}}, "0.area"),
     ],
 )
 def test_config_errors_name_the_key(bad: dict, where: str) -> None:

@@ -9,7 +9,8 @@ The contract and the layers are described in ``docs/design.md``. In data-flow or
   :func:`interpolate_with_derivatives`;
 * surfaces: :func:`geometry_pass` -> :class:`GBuffer`;
 * light: :class:`Lights` (:class:`DirectionalLights`, :class:`PointLights`,
-  :class:`SpotLights`, ambient SH from :func:`sh_from_color`), :class:`Environment`,
+  :class:`SpotLights`, :class:`AreaLights` with :func:`area_light_axes`, ambient SH from
+  :func:`sh_from_color`), :class:`Environment`,
   :func:`shade`;
 * the whole frame: :class:`Renderer` -> :class:`RenderOutput` (settings:
   :class:`ShadingSettings`, :class:`RasterSettings`, :class:`TextureSettings`,
@@ -35,17 +36,25 @@ from .scene import RenderScene
 from .settings import BackgroundSettings, RasterSettings, ShadingSettings, TextureSettings
 from .shading.ibl import Environment
 from .shading.lighting import shade
-from .shading.lights import DirectionalLights, Lights, PointLights, SpotLights, sh_from_color
+from .shading.lights import (
+    AreaLights,
+    DirectionalLights,
+    Lights,
+    PointLights,
+    SpotLights,
+    area_light_axes,
+    sh_from_color,
+)
 from .shading.shadows import ShadowSettings
 from .shading.volumetric import Fog
 
 __all__ = [
-    "BackgroundSettings", "CHANNELS", "ConfigError", "DirectionalLights", "Dissolve",
-    "Environment", "Fog", "Fragments",
+    "AreaLights", "BackgroundSettings", "CHANNELS", "ConfigError", "DirectionalLights",
+    "Dissolve", "Environment", "Fog", "Fragments",
     "GBuffer", "Lights", "Material", "Mesh", "MeshFileError", "NotImplementedWarning",
     "PointLights", "RasterSettings", "RenderOutput", "RenderPlan", "RenderScene", "Renderer",
     "Scene", "ShadingSettings", "ShadowSettings", "SpotLights", "TextureSettings",
-    "antialias", "camera", "fit_background", "geometry_pass", "interpolate",
+    "antialias", "area_light_axes", "camera", "fit_background", "geometry_pass", "interpolate",
     "interpolate_with_derivatives", "lights_from_config", "load_background", "load_config",
     "load_mesh", "load_scene", "load_spot", "pack_meshes", "parse_config", "post", "rasterize",
     "read_hdr", "render_config", "render_to_files", "sh_from_color", "shade", "shading",

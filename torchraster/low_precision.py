@@ -27,7 +27,7 @@ from .material import Material
 from .motion import OtherFrame
 from .numerics import LOW_PRECISION, finish_low_precision, to_compute
 from .scene import RenderScene
-from .shading.lights import Lights
+from .shading.lights import LIGHT_KINDS, Lights
 
 _VERTEX_FIELDS = ("positions", "normals", "uvs", "tangents", "object_coords")
 
@@ -44,7 +44,7 @@ def lift(t: object) -> object:
 
 def _light_parts(lights: Lights) -> list[object]:
     return [lights.ambient] + [getattr(part, f.name) for part in (
-        lights.directional, lights.point, lights.spot) if part is not None
+        getattr(lights, kind) for kind in LIGHT_KINDS) if part is not None
         for f in dataclasses.fields(part) if f.name != "shadow"]
 
 
@@ -85,7 +85,7 @@ def lift_lights(lights: object) -> object:
     if not isinstance(lights, Lights):
         return lights  # None, or a wrong type that forward rejects by name
     parts = {}
-    for name in ("directional", "point", "spot"):
+    for name in LIGHT_KINDS:
         part = getattr(lights, name)
         if part is not None:
             part = dataclasses.replace(part, **{

@@ -54,7 +54,7 @@ from .dissolve import PERIOD, Dissolve
 from .gbuffer import GBuffer
 from .motion import OtherFrame
 from .scene import RenderScene
-from .shading.lights import Lights
+from .shading.lights import LIGHT_KINDS, Lights
 from .shading.volumetric import Fog
 
 if TYPE_CHECKING:  # the renderer calls this module; only its types are named here
@@ -200,12 +200,12 @@ def shift_view(view: torch.Tensor, proj: torch.Tensor, shift: Shift) -> torch.Te
 
 
 def shift_lights(lights: Lights | None, shift: Shift) -> Lights | None:
-    """Point / spot light positions made relative (float64 lights cast to the compute
+    """Point / spot / area light positions made relative (float64 lights cast to the compute
     dtype when it is narrower); directions and ambient light do not move."""
     if not isinstance(lights, Lights):
         return lights  # None, or a wrong type that forward rejects by name
     parts = {}
-    for name in ("point", "spot"):
+    for name in ("point", "spot", "area"):
         part = getattr(lights, name)
         if part is not None:
             dt = part.position.dtype
@@ -221,7 +221,7 @@ def shift_lights(lights: Lights | None, shift: Shift) -> Lights | None:
 def _has_float64(lights: Lights) -> bool:
     """Whether any tensor of ``lights`` is float64."""
     tensors = [lights.ambient]
-    for part in (lights.directional, lights.point, lights.spot):
+    for part in (getattr(lights, kind) for kind in LIGHT_KINDS):
         if part is not None:
             tensors += [getattr(part, f.name) for f in dataclasses.fields(part)]
     return any(isinstance(t, torch.Tensor) and t.dtype == torch.float64 for t in tensors)

@@ -65,7 +65,7 @@ from .settings import (
 )
 from .shading.ibl import Environment, content_key, shade_ibl
 from .shading.lighting import shade
-from .shading.lights import Lights
+from .shading.lights import LIGHT_KINDS, Lights, area_equivalent_radius
 from .shading.models import get_model
 from .shading.shadows import (
     ShadowMapCache,
@@ -565,6 +565,14 @@ class Renderer(nn.Module):
         if self.raster_settings.edge_supersample > 1 and alpha != "none":
             raise NotImplementedError(f"edge_supersample: not implemented with glTF "
                                       f"{alpha.upper()} materials yet; use supersample instead")
+        if shading in LIT_MODELS and lights is not None and lights.area is not None and (
+                lights.area.count > 0):
+            if LIT_MODELS[shading] != "cook_torrance":
+                raise NotImplementedError(f"lights.area: area lights are shaded by the pbr "
+                                          f"model only, not by shading={shading!r}")
+            if self.fog is not None:
+                raise NotImplementedError("lights.area: fog is not lit or dimmed by area "
+                                          "lights yet; use point or spot lights with fog")
         ssr = self._plan_ssr(scene, shading, alpha)
         if ssr and environment is not None and environment.sun_threshold is not None:
             raise NotImplementedError(
@@ -583,7 +591,7 @@ class Renderer(nn.Module):
         if shading in LIT_MODELS and lights is not None:
             if lights.ambient is not None:
                 light_kinds.append(("ambient", None))
-            for kind in ("directional", "point", "spot"):
+            for kind in LIGHT_KINDS:
                 group = getattr(lights, kind)
                 if group is not None and group.count:
                     light_kinds.append((kind, group.count))
@@ -694,14 +702,18 @@ class Renderer(nn.Module):
             if flags is not None and not bool(flags.any()):
                 return ()
         groups: list[tuple[str, tuple[int, ...], ShadowSettings]] = []
-        for kind in ("directional", "point", "spot"):
+        for kind in LIGHT_KINDS:
             part = getattr(lights, kind)
             if part is None or part.count == 0:
                 continue
             casting = part.cast_shadows.any(0).nonzero().flatten().tolist()
             by_settings: dict[ShadowSettings, list[int]] = {}
             for i in casting:
-                by_settings.setdefault(part.settings_of(i) or self.shadow_settings, []).append(i)
+                settings = part.settings_of(i) or self.shadow_settings
+                if kind == "area":
+                    settings = area_shadow_settings(part, i, part.settings_of(i) is not None,
+                                                    settings)
+                by_settings.setdefault(settings, []).append(i)
             groups += [(kind, tuple(ids), st) for st, ids in by_settings.items()]
         return tuple(groups)
 
@@ -1083,7 +1095,13 @@ class Renderer(nn.Module):
         groups: list[ShadowMaps] = []
         for kind, ids, settings in plan.shadow_lights:
             part = getattr(lights, kind).select(torch.tensor(ids))
-            if kind == "directional":
+            if kind == "area":  # a cube map from the centre, PCSS of the light's size
+                source = given if shared else lights
+                part = source.area.select(torch.tensor(ids))
+                g = local_views("point", part.position, None, None, settings,
+                                bounds[:1] if shared else bounds)
+                g.kind = "area"
+            elif kind == "directional":
                 g = directional_views(part.direction, settings, bounds, view.to(positions.dtype),
                                       proj.to(positions.dtype), receiver_bounds=scene_bounds)
             else:
@@ -1205,7 +1223,7 @@ class Renderer(nn.Module):
                                            scene.face_material if len(scene.materials) > 1
                                            else None)
             if hook is not None:  # shadow edges: the 1x visibility of every shadowed light
-                vis = [v for kind in ("directional", "point", "spot")
+                vis = [v for kind in LIGHT_KINDS
                        if (v := hook(kind, slice(None))) is not None]
                 if vis:
                     edge |= edge_aa.contrast_edges(torch.cat(vis, 1).flatten(1, 2),
@@ -1276,7 +1294,7 @@ def _lights_items(lights: Lights | None, sl: slice, b: int) -> Lights | None:
     if lights is None or lights.batch_size != b:
         return lights
     parts = {}
-    for name in ("directional", "point", "spot"):
+    for name in LIGHT_KINDS:
         part = getattr(lights, name)
         if part is not None:
             part = dataclasses.replace(part, **{
@@ -1291,6 +1309,18 @@ def _environment_per_item(environment: Environment) -> bool:
     intensity = environment.intensity
     return (environment.radiance.shape[0] > 1 or environment.rotation.shape[0] > 1
             or (isinstance(intensity, torch.Tensor) and intensity.numel() > 1))
+
+
+def area_shadow_settings(lights, i: int, given: bool, settings: ShadowSettings
+                         ) -> ShadowSettings:
+    """The shadow settings of area light ``i``: a cube map from its centre, filtered with
+    PCSS whose light size is the radius of the disc of the light's area (the largest over
+    the batch; :func:`~torchraster.shading.lights.area_equivalent_radius`). ``settings``:
+    the light's own (``given``: its filter is kept) or the renderer's default (its filter
+    becomes ``"pcss"``)."""
+    radius = float(area_equivalent_radius(lights.select(slice(i, i + 1))).detach().amax())
+    return dataclasses.replace(settings, light_size=radius,
+                               filter=settings.filter if given else "pcss")
 
 
 def _caster_bounds(positions: torch.Tensor, faces: torch.Tensor,

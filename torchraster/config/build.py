@@ -38,7 +38,15 @@ from ..renderer import Renderer
 from ..scene import RenderScene
 from ..settings import BackgroundSettings, RasterSettings, ShadingSettings, TextureSettings
 from ..shading.ibl import Environment
-from ..shading.lights import SH_C0, DirectionalLights, Lights, PointLights, SpotLights
+from ..shading.lights import (
+    SH_C0,
+    AreaLights,
+    DirectionalLights,
+    Lights,
+    PointLights,
+    SpotLights,
+    area_light_axes,
+)
 from ..shading.shadows import ShadowSettings
 from ..shading.volumetric import Fog
 from .objects import SceneObjects, build_objects
@@ -257,7 +265,7 @@ def lights_from_config(
 
     Returns:
         Lights with ``ambient (B, 9, 3)`` (sum of all ambient lights) or None, and
-        directional / point / spot containers with ``L`` = number of lights of each type
+        directional / point / spot / area containers with ``L`` = number of lights of each type
         (None for types that are absent).
     """
     if not isinstance(batch, int) or isinstance(batch, bool) or batch < 1:
@@ -276,7 +284,8 @@ def lights_from_config(
     def inf_if_none(r: float | None) -> float:
         return math.inf if r is None else r
 
-    by_type: dict[str, list] = {"ambient": [], "directional": [], "point": [], "spot": []}
+    by_type: dict[str, list] = {"ambient": [], "directional": [], "point": [], "spot": [],
+                                "area": []}
     for c in cfgs:
         by_type[c.type].append(c)
 
@@ -320,7 +329,37 @@ def lights_from_config(
             cast_shadows=shadows([_casts(c) for c in s]),
             shadow=tuple(_shadow_settings(c) for c in s),
         )
-    return Lights(ambient=ambient, directional=directional, point=point, spot=spot)
+    area = None
+    if a := by_type["area"]:
+        f64 = torch.float64
+        sizes = [c.size or [1.0, 1.0] if c.shape == "rect" else [2 * (c.radius or 0.5)] * 2
+                 for c in a]
+        ups = [c.up for c in a]
+        u, v = area_light_axes(torch.tensor([c.direction for c in a], dtype=f64),
+                               torch.tensor([s[0] for s in sizes], dtype=f64),
+                               torch.tensor([s[1] for s in sizes], dtype=f64),
+                               None if all(x is None for x in ups) else torch.tensor(
+                                   [x or _default_up(c.direction) for x, c in zip(
+                                       ups, a, strict=True)], dtype=f64))
+        area = AreaLights(
+            position=tensor([c.position for c in a], (3,)),
+            u=tensor(u.tolist(), (3,)),
+            v=tensor(v.tolist(), (3,)),
+            color=tensor([c.color for c in a], (3,)),
+            intensity=tensor([c.intensity for c in a]),
+            disc=shadows([c.shape == "disc" for c in a]),
+            two_sided=shadows([c.two_sided for c in a]),
+            cast_shadows=shadows([_casts(c) for c in a]),
+            shadow=tuple(_shadow_settings(c) for c in a),
+        )
+    return Lights(ambient=ambient, directional=directional, point=point, spot=spot, area=area)
+
+
+def _default_up(direction: list[float]) -> list[float]:
+    """:func:`~torchraster.shading.lights.area_light_axes`'s default up of a light facing
+    ``direction``: +Y, or +Z for a light facing along Y."""
+    norm = math.sqrt(sum(x * x for x in direction))
+    return [0.0, 0.0, 1.0] if abs(direction[1]) / norm > 0.999 else [0.0, 1.0, 0.0]
 
 
 def build_camera(cam: CameraConfig, positions: torch.Tensor, resolution: tuple[int, int],

@@ -7,7 +7,7 @@ from collections.abc import Sequence
 import yaml
 
 #: Tags pydantic adds to the key paths of a discriminated union (the light types).
-UNION_TAGS = ("ambient", "directional", "point", "spot")
+UNION_TAGS = ("ambient", "directional", "point", "spot", "area")
 
 
 def key_lines(node: yaml.Node) -> dict:

@@ -752,6 +752,15 @@ class ShadowConfig(_Strict):
         return self
 
 
+class AreaShadowConfig(ShadowConfig):
+    """Shadow maps of an area light: a cube map from its centre, filtered with PCSS by
+    default; the PCSS light size is the light's own (``light_size`` is refused)."""
+
+    filter: Literal[FILTERS] = Field(  # type: ignore[valid-type]
+        "pcss", description="pcss (default: a penumbra from the light's own size), hard, pcf "
+        "or vsm")
+
+
 class _LightConfigBase(_Strict):
     name: str | None = None
     color: Color3 = Field(default_factory=lambda: list(DEFAULT_COLOR))
@@ -834,8 +843,52 @@ class SpotLightConfig(_DirectionMixin, PointLightConfig):
         return self
 
 
+class AreaLightConfig(_DirectionMixin, _LightConfigBase):
+    """Area light centred at ``position``, emitting towards ``direction`` (default -Z): a
+    rectangle ``size: [width, height]`` (m; default 1 x 1) or a disc ``radius`` (m);
+    ``intensity`` is its luminance in nits (cd/m^2); ``up`` orients the height side
+    (default +Y, or +Z for a light facing along Y); ``two_sided`` emits on both sides.
+    Shadows: a cube map from the centre filtered with PCSS of the light's size."""
+
+    type: Literal["area"]
+    shape: Literal["rect", "disc"] = "rect"
+    position: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+    direction: Vec3 = Field(default_factory=lambda: list(DEFAULT_DIRECTION))
+    size: Annotated[list[Positive], Field(min_length=2, max_length=2)] | None = Field(
+        None, description="rect: [width, height] (m), default [1, 1]")
+    radius: Positive | None = Field(None, description="disc: radius (m), default 0.5")
+    up: Vec3 | None = None
+    two_sided: bool = False
+    cast_shadows: bool | None = Field(None, description="true: shadows with default settings "
+                                      "(same as `shadows: {}`)")
+    shadows: AreaShadowConfig | None = None
+
+    @model_validator(mode="after")
+    def _shape(self) -> AreaLightConfig:
+        if self.shape == "rect" and self.radius is not None:
+            raise ValueError("radius: is for shape: disc; a rect takes size: [width, height]")
+        if self.shape == "disc" and self.size is not None:
+            raise ValueError("size: is for shape: rect; a disc takes radius")
+        if self.up is not None:
+            d, u = self.direction, self.up
+            cross = [d[1] * u[2] - d[2] * u[1], d[2] * u[0] - d[0] * u[2],
+                     d[0] * u[1] - d[1] * u[0]]
+            if sum(c * c for c in cross) <= 1e-12 * sum(x * x for x in d) * sum(
+                    x * x for x in u):
+                raise ValueError("up: must not be zero or parallel to direction")
+        cascade_keys = {"cascades", "max_distance", "split_lambda", "cascade_blend"}
+        if self.shadows is not None and self.shadows.model_fields_set & cascade_keys:
+            raise ValueError(f"shadows.{sorted(self.shadows.model_fields_set & cascade_keys)[0]}:"
+                             " cascades are for directional lights only")
+        if self.shadows is not None and "light_size" in self.shadows.model_fields_set:
+            raise ValueError("shadows.light_size: an area light's PCSS light size is its own "
+                             "(the radius of the disc of its area)")
+        return _check_shadow_switch(self)
+
+
 LightConfig = Annotated[
-    AmbientLightConfig | DirectionalLightConfig | PointLightConfig | SpotLightConfig,
+    AmbientLightConfig | DirectionalLightConfig | PointLightConfig | SpotLightConfig
+    | AreaLightConfig,
     Field(discriminator="type"),
 ]
 _LIGHT_LIST = TypeAdapter(list[LightConfig])

@@ -22,6 +22,7 @@ from .check import dataset_problems
 from .lines import UNION_TAGS, key_lines, line_of
 from .schema import (
     AmbientLightConfig,
+    AreaLightConfig,
     ConfigError,
     DirectionalLightConfig,
     PointLightConfig,
@@ -75,7 +76,8 @@ def _model_at(loc: Sequence) -> type[BaseModel] | None:
             continue
         if part in UNION_TAGS:
             model = {"ambient": AmbientLightConfig, "directional": DirectionalLightConfig,
-                     "point": PointLightConfig, "spot": SpotLightConfig}[part]
+                     "point": PointLightConfig, "spot": SpotLightConfig,
+                     "area": AreaLightConfig}[part]
             continue
         field = model.model_fields.get(part) if isinstance(model, type) else None
         if field is None:

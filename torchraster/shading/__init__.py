@@ -1,7 +1,8 @@
 """Shading: BRDFs, shading models, lights and the deferred lighting pass.
 
 Submodules: ``brdf`` (GGX, Smith, Schlick, Lambert, Cook-Torrance), ``models`` (shading
-models by name), ``lights`` (batched lights), ``lighting`` (deferred pass).
+models by name), ``lights`` (batched lights), ``lighting`` (deferred pass), ``area`` and
+``ltc`` (area lights by linearly transformed cosines).
 """
 
 from torchraster.shading.brdf import (
@@ -14,6 +15,7 @@ from torchraster.shading.brdf import (
 )
 from torchraster.shading.lighting import shade
 from torchraster.shading.lights import (
+    AreaLights,
     DirectionalLights,
     Lights,
     PointLights,
@@ -25,6 +27,7 @@ from torchraster.shading.surface import PixelSurface, Surface, pixel_surface
 __all__ = [
     "MIN_ROUGHNESS",
     "MODELS",
+    "AreaLights",
     "DirectionalLights",
     "Lights",
     "PixelSurface",

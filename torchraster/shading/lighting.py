@@ -39,6 +39,7 @@ from torchraster.numerics import (
     specular_f0,
     to_compute,
 )
+from torchraster.shading.area import area_lights
 from torchraster.shading.brdf import (
     MIN_COS,
     MIN_ROUGHNESS,
@@ -50,6 +51,7 @@ from torchraster.shading.energy import DFG_LUT_SAMPLES, DFG_LUT_SIZE, energy_ter
 from torchraster.shading.ibl import dfg_lut, lookup_dfg
 from torchraster.shading.lights import (
     MIN_LIGHT_DISTANCE,
+    AreaLights,
     DirectionalLights,
     Lights,
     PointLights,
@@ -83,9 +85,13 @@ GRAD_CHUNK_FACTOR: int = 8
 #: above it, evaluating all of them is cheaper than gathering the reached ones.
 SPARSE_FRACTION: float = 0.4
 
+#: Pixel-lights of an area light cost about this many of a point light's (its polygon's
+#: edges, twice): the fused pass's chunks hold that many times fewer of them.
+AREA_LIGHT_COST: int = 8
+
 #: ``visibility(kind, lights_slice) -> (B, L, 1, H, W) | None``: the fraction of each light
-#: of ``kind`` ("directional", "point" or "spot") in ``lights_slice`` that reaches each
-#: pixel (shadows); None = all of it.
+#: of ``kind`` ("directional", "point", "spot" or "area") in ``lights_slice`` that reaches
+#: each pixel (shadows); None = all of it.
 VisibilityHook = Callable[[str, slice], "torch.Tensor | None"]
 
 #: ``ibl(surface) -> (B, 3, H, W)``: radiance from an environment at each pixel of the
@@ -190,6 +196,9 @@ def cook_torrance_lights(
     Returns:
         ``(3, M)`` outgoing radiance.
     """
+    if kind is AreaLights:  # linearly transformed cosines (shading/area.py)
+        return area_lights(lights, item, position, normal, view, albedo, metallic, roughness,
+                           visibility, multiscatter)
     n_v = (normal * view).sum(0, keepdim=True)  # (1, M)
     nv = n_v.clamp(MIN_COS, 1.0)
     r = roughness.clamp(MIN_ROUGHNESS, 1.0)
@@ -328,7 +337,8 @@ def _fused_direct(kind, lights, packed, vis, use_ckpt, acc, multiscatter=True, d
     (or None) is called once the item is lit. ``vis``: ``(B, L, 1, H, W)`` visibility or
     None."""
     per = PIXEL_LIGHT_CHUNK * (GRAD_CHUNK_FACTOR if torch.is_grad_enabled() else 1)
-    per = max(1024, per // max(1, lights.count))
+    cost = lights.count * (AREA_LIGHT_COST if kind is AreaLights else 1)
+    per = max(1024, per // max(1, cost))
     for item in range(len(acc)):
         sel, *attrs = packed(item)
         if attrs[0].shape[1] > 0:
@@ -509,8 +519,9 @@ def shade(
             shade_ibl(s.n, s.v, s.albedo, s.metallic, s.roughness, None, env)``.
         visibility: optional ``visibility(kind, lights) -> (B, L, 1, H, W)`` (or None for
             unshadowed), called per chunk of lights of ``kind`` (``"directional"``,
-            ``"point"``, ``"spot"``) with the slice of light indices: the fraction of each
-            light that reaches each pixel (e.g. shadow maps). Multiplies the illuminance.
+            ``"point"``, ``"spot"``, ``"area"``) with the slice of light indices: the fraction
+            of each light that reaches each pixel (e.g. shadow maps). Multiplies the
+            illuminance.
         light_chunk: lights evaluated at once (default: from LIGHT_CHUNK_ELEMENTS).
             ``1`` is the plain Python loop over lights.
         checkpoint_chunks: recompute chunks in backward (default: when autograd is on
@@ -596,11 +607,16 @@ def shade(
     lights = lights.to(device=dev, dtype=dt)
     kinds = [(kind, part) for kind, part in ((DirectionalLights, lights.directional),
                                              (PointLights, lights.point),
-                                             (SpotLights, lights.spot))
+                                             (SpotLights, lights.spot),
+                                             (AreaLights, lights.area))
              if part is not None and part.count > 0]
     # The fused Cook-Torrance pass works on the covered pixels only, packed once per frame;
     # the full-frame tensors are built only for other models, ambient light and IBL.
     fused = shading_model is _cook_torrance_model
+    if not fused and lights.area is not None and lights.area.count > 0:
+        raise NotImplementedError(
+            f"lights.area: area lights are shaded by the Cook-Torrance model only, not by "
+            f"model={model if isinstance(model, str) else type(model).__name__!r}")
     full_frame = (kinds and not fused) or lights.ambient is not None or ibl is not None
     if full_frame and store is not None:  # frames of the packed channels
         position, normal, albedo, metallic, roughness = (
@@ -671,7 +687,8 @@ def shade(
         acc[item] = None
 
     for kind, part in kinds:
-        name = {DirectionalLights: "directional", PointLights: "point", SpotLights: "spot"}[kind]
+        name = {DirectionalLights: "directional", PointLights: "point", SpotLights: "spot",
+                AreaLights: "area"}[kind]
         slices = _chunks(part.count, per_chunk)
         use_ckpt = checkpoint_chunks
         if use_ckpt is None:

@@ -1,4 +1,5 @@
-"""Batched lights: ambient (constant or 9 SH coefficients), directional, point and spot.
+"""Batched lights: ambient (constant or 9 SH coefficients), directional, point, spot and
+area (rectangles and discs).
 
 Many lights are a tensor dimension: every per-light tensor is ``(B, L, ...)`` and the
 lighting pass evaluates all lights of a type with one set of tensor ops. Names and units
@@ -13,6 +14,11 @@ follow glTF ``KHR_lights_punctual`` (and pyrender):
   ``0 <= inner <= outer <= pi/2``.
 * ``direction``: the direction the light *travels* (a glTF light's local -Z axis),
   ``(B, L, 3)``, need not be unit length. ``position``: world space, ``(B, L, 3)``.
+* area lights (:class:`AreaLights`, not in glTF): ``position`` the centre, ``u`` / ``v``
+  ``(B, L, 3)`` half-extent vectors (a rectangle's corners are ``position +- u +- v``, a
+  disc (ellipse) is ``position + s u + t v`` with ``s^2 + t^2 <= 1``), emitting towards
+  ``u x v`` (both sides if ``two_sided``); ``intensity`` is the emitted *luminance* in nits
+  (cd/m^2): the surface radiance is ``color * intensity`` everywhere on the light.
 * ``cast_shadows``: ``(B, L)`` bool: the light casts shadows (shadow maps, see
   :mod:`torchraster.shading.shadows`); ``shadow``: how (one
   :class:`~torchraster.shading.shadows.ShadowSettings` for all L lights, a sequence of L
@@ -76,9 +82,9 @@ def _check_common(lights: object, batch: int | None = None) -> tuple[int, int]:
     for f in _tensor_fields(lights):
         value = getattr(lights, f.name)
         name = f"{type(lights).__name__}.{f.name}"
-        if f.name == "cast_shadows":
+        if f.name in _FLAG_FIELDS:
             continue
-        vec = f.name in ("color", "position", "direction")
+        vec = f.name in ("color", "position", "direction", "u", "v")
         t = check_tensor(name, value, ("B", "L", 3) if vec else ("B", "L"), floating=True,
                          finite=f.name != "range")  # range may be inf (= no range)
         if first is None:
@@ -86,11 +92,12 @@ def _check_common(lights: object, batch: int | None = None) -> tuple[int, int]:
         elif (t.shape[0], t.shape[1]) != first:
             raise ValueError(f"{name}: expected (B, L) = {first}, got {tuple(t.shape[:2])}")
     assert first is not None
-    shadows = lights.cast_shadows  # type: ignore[attr-defined]
-    if shadows is not None:
-        check_tensor(f"{type(lights).__name__}.cast_shadows", shadows, first)
-        if shadows.dtype != torch.bool:
-            raise TypeError(f"{type(lights).__name__}.cast_shadows: expected a bool tensor")
+    for flag in _FLAG_FIELDS:
+        value = getattr(lights, flag, None)
+        if value is not None:
+            check_tensor(f"{type(lights).__name__}.{flag}", value, first)
+            if value.dtype != torch.bool:
+                raise TypeError(f"{type(lights).__name__}.{flag}: expected a bool tensor")
     for name in ("color", "intensity"):
         check_radiance(f"{type(lights).__name__}.{name}", getattr(lights, name))
     _check_shadow_settings(lights, first[1])
@@ -100,6 +107,13 @@ def _check_common(lights: object, batch: int | None = None) -> tuple[int, int]:
             raise ValueError(f"{type(lights).__name__}.direction: zero vector for light(s) "
                              f"{(norm2 <= 0).nonzero()[:, 1].tolist()}; expected a direction")
     return first
+
+
+#: The light containers of :class:`Lights`, by field name.
+LIGHT_KINDS: tuple[str, ...] = ("directional", "point", "spot", "area")
+
+#: Per-light ``(B, L)`` bool fields of the containers.
+_FLAG_FIELDS = ("cast_shadows", "disc", "two_sided")
 
 
 def _tensor_fields(lights: object) -> list[dataclasses.Field]:
@@ -247,18 +261,103 @@ class SpotLights(_LightSet):
 
 
 @dataclass
+class AreaLights(_LightSet):
+    """Area lights: rectangles (parallelograms) and discs (ellipses) of constant luminance.
+
+    ``position`` ``(B, L, 3)`` the centre; ``u``, ``v`` ``(B, L, 3)`` half-extent vectors
+    (rectangle: corners ``position +- u +- v``, area ``4 |u x v|``; disc: ``position + s u
+    + t v``, ``s^2 + t^2 <= 1``, area ``pi |u x v|``), emitting towards ``u x v``;
+    ``color`` ``(B, L, 3)``; ``intensity`` ``(B, L)`` the emitted luminance in nits
+    (cd/m^2), so a light of area A seen face on is as bright as a point light of
+    ``intensity * A`` candela; ``disc`` ``(B, L)`` bool (default False: rectangles);
+    ``two_sided`` ``(B, L)`` bool (default False: only the ``u x v`` side emits);
+    ``cast_shadows`` / ``shadow`` as for point lights (the shadow of an area light is
+    filtered with PCSS by default, its light size the light's own, see
+    :func:`area_equivalent_radius`). :func:`area_light_axes` makes ``u`` and ``v`` from a
+    facing direction and a size.
+    """
+
+    position: torch.Tensor
+    u: torch.Tensor
+    v: torch.Tensor
+    color: torch.Tensor
+    intensity: torch.Tensor
+    disc: torch.Tensor | None = None
+    two_sided: torch.Tensor | None = None
+    cast_shadows: torch.Tensor | None = None
+    shadow: ShadowSettings | tuple[ShadowSettings | None, ...] | None = None
+
+    def __post_init__(self) -> None:
+        for flag in ("disc", "two_sided", "cast_shadows"):
+            if getattr(self, flag) is None:
+                setattr(self, flag, torch.zeros(self.intensity.shape, dtype=torch.bool,
+                                                device=self.color.device))
+        _check_common(self)
+        cross2 = (torch.linalg.cross(self.u.detach(), self.v.detach()) ** 2).sum(-1)
+        scale2 = ((self.u.detach() ** 2).sum(-1) * (self.v.detach() ** 2).sum(-1))
+        flat = ~(cross2 > 1e-12 * scale2) | (scale2 <= 0)
+        if bool(flat.any()):
+            raise ValueError(f"AreaLights.u / v: parallel or zero half-extents for light(s) "
+                             f"{sorted(set(flat.nonzero()[:, 1].tolist()))}; expected two "
+                             "independent vectors spanning the light")
+
+
+def area_light_axes(direction: torch.Tensor, width: torch.Tensor, height: torch.Tensor,
+                    up: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Half-extent vectors ``u``, ``v`` of :class:`AreaLights` facing ``direction``.
+
+    Args:
+        direction: ``(..., 3)`` the direction the light emits into (its normal; need not
+            be unit).
+        width, height: ``(...)`` full side lengths (m); a disc of radius r is
+            ``width = height = 2 r``.
+        up: ``(..., 3)`` the in-plane direction of the ``height`` side (projected onto the
+            light's plane); default world +Y, or +Z for a light facing along Y.
+
+    Returns:
+        ``u`` (along the width) and ``v`` (along the height), each ``(..., 3)``, with
+        ``u x v`` along ``direction``.
+
+    Example:
+        >>> u, v = area_light_axes(torch.tensor([0.0, -1, 0]), torch.tensor(2.0),
+        ...                        torch.tensor(1.0))
+        >>> (u + 0.0).tolist(), v.tolist()  # a 2 x 1 m panel facing down
+        ([1.0, 0.0, 0.0], [0.0, 0.0, 0.5])
+    """
+    n = safe_normalize(direction, dim=-1)
+    if up is None:
+        y = torch.tensor([0.0, 1.0, 0.0], dtype=n.dtype, device=n.device)
+        z = torch.tensor([0.0, 0.0, 1.0], dtype=n.dtype, device=n.device)
+        up = torch.where((n[..., 1:2].abs() > 0.999), z, y).expand_as(n)
+    up = up.to(n.dtype)
+    b = safe_normalize(up - (up * n).sum(-1, keepdim=True) * n, dim=-1)
+    if bool(((b * b).sum(-1) < 0.5).any()):
+        raise ValueError("area_light_axes: up is parallel to direction")
+    a = torch.linalg.cross(b, n)  # a x b = n
+    return a * (0.5 * width)[..., None], b * (0.5 * height)[..., None]
+
+
+def area_equivalent_radius(lights: AreaLights) -> torch.Tensor:
+    """``(B, L)`` radius of the disc with each light's area (m): the light size of its
+    PCSS shadows."""
+    area = torch.linalg.cross(lights.u, lights.v).norm(dim=-1)
+    return torch.sqrt(area * torch.where(lights.disc, 1.0, 4.0 / math.pi))
+
+
+@dataclass
 class Lights:
     """All lights of a batch of scenes. Any part may be None (or hold L = 0 lights).
 
     Attributes:
         ambient: ``(B, 9, 3)`` SH coefficients of the ambient incident radiance, or None.
-        directional, point, spot: light containers, or None.
+        directional, point, spot, area: light containers, or None.
     """
 
     ambient: torch.Tensor | None = None
     directional: DirectionalLights | None = None
     point: PointLights | None = None
     spot: SpotLights | None = None
+    area: AreaLights | None = None
 
     def __post_init__(self) -> None:
         sizes = {}
@@ -270,6 +369,7 @@ class Lights:
             ("directional", DirectionalLights),
             ("point", PointLights),
             ("spot", SpotLights),
+            ("area", AreaLights),
         ):
             part = getattr(self, name)
             if part is not None:
@@ -286,7 +386,7 @@ class Lights:
         """B, or None when there are no lights at all."""
         if self.ambient is not None:
             return self.ambient.shape[0]
-        for part in (self.directional, self.point, self.spot):
+        for part in (self.directional, self.point, self.spot, self.area):
             if part is not None:
                 return part.batch_size
         return None
@@ -298,6 +398,7 @@ class Lights:
             directional=None if self.directional is None else self.directional.expand(batch),
             point=None if self.point is None else self.point.expand(batch),
             spot=None if self.spot is None else self.spot.expand(batch),
+            area=None if self.area is None else self.area.expand(batch),
         )
 
     def to(self, device=None, dtype: torch.dtype | None = None) -> Lights:
@@ -307,6 +408,7 @@ class Lights:
             directional=None if self.directional is None else self.directional.to(device, dtype),
             point=None if self.point is None else self.point.to(device, dtype),
             spot=None if self.spot is None else self.spot.to(device, dtype),
+            area=None if self.area is None else self.area.to(device, dtype),
         )
 
 

@@ -1,0 +1,120 @@
+"""Area lights: rectangles and discs shaded with linearly transformed cosines.
+
+The Cook-Torrance radiance of a polygonal light of constant radiance ``Le`` is
+``Le (kd F_d + (f0 A + B) F_s)`` per light and pixel (Heitz, Dupuy, Hill & Neubelt 2016,
+"Real-time polygonal-light shading with linearly transformed cosines"):
+
+* ``F_d``: the polygon's form factor, the cosine-weighted solid angle over pi of its part
+  above the horizon (exact, :func:`~torchraster.shading.ltc.polygon_form_factor`): the
+  Lambert term ``kd / pi`` integrated over the light.
+* ``F_s``: the same integral of the polygon transformed by the inverse LTC matrix fitted to
+  this renderer's GGX lobe ``D V (n.l)`` at the pixel's roughness and n.v
+  (:mod:`~torchraster.shading.ltc`): the lobe's shape; ``f0 A + B`` is its Fresnel-weighted
+  magnitude, the split-sum table the ambient and IBL paths also read.
+
+A disc (ellipse) is shaded as the regular :data:`DISC_SIDES`-gon of the same area; with
+rectangles in the same light set, rectangles repeat their vertices (degenerate edges add
+0). Energy compensation scales ``F_s`` and ``kd`` as for punctual lights. Visibility
+(shadows) multiplies each light's whole contribution.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from torchraster.numerics import diffuse_color, specular_f0
+from torchraster.shading.brdf import MIN_COS, MIN_ROUGHNESS
+from torchraster.shading.energy import DFG_LUT_SAMPLES, DFG_LUT_SIZE, energy_terms
+from torchraster.shading.ibl import dfg_lut, lookup_dfg
+from torchraster.shading.lights import AreaLights
+from torchraster.shading.ltc import local_frame, ltc_inverse, polygon_form_factor
+
+#: Sides of the regular polygon a disc is shaded as (same area as the disc): the relative
+#: error of its form factor against the exact disc is below 1e-3 at any distance
+#: (docs/benchmarks.md, section area).
+DISC_SIDES: int = 16
+
+#: Rectangle corners in (s, t) of ``position + s u + t v``, counter-clockwise about u x v.
+_RECT = ((-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0))
+
+
+def polygon_corners(lights: AreaLights, item: int) -> torch.Tensor:
+    """``(L, K, 3)`` world vertices of batch item ``item``'s lights, counter-clockwise
+    about ``u x v`` (K = 4 for rectangles only, else :data:`DISC_SIDES`; a rectangle then
+    repeats its corners)."""
+    c, u, v = lights.position[item], lights.u[item], lights.v[item]  # (L, 3)
+    disc = lights.disc[item]
+    dt, dev = c.dtype, c.device
+    rect = torch.tensor(_RECT, dtype=dt, device=dev)  # (4, 2)
+    if not bool(disc.any()):
+        st = rect[None].expand(c.shape[0], 4, 2)
+    else:
+        k = DISC_SIDES
+        phi = torch.arange(k, dtype=torch.float64) * (2 * math.pi / k)
+        # the k-gon of the disc's area: circumradius sqrt(2 pi / (k sin(2 pi / k)))
+        scale = math.sqrt(2 * math.pi / (k * math.sin(2 * math.pi / k)))
+        ring = (torch.stack([phi.cos(), phi.sin()], -1) * scale).to(dt).to(dev)  # (k, 2)
+        pad = rect.repeat_interleave(k // 4, 0)  # each corner k/4 times: same polygon
+        st = torch.where(disc[:, None, None], ring, pad)  # (L, k, 2)
+    return c[:, None] + st[..., :1] * u[:, None] + st[..., 1:] * v[:, None]
+
+
+def area_lights(
+    lights: AreaLights,
+    item: int,
+    position: torch.Tensor,
+    normal: torch.Tensor,
+    view: torch.Tensor,
+    albedo: torch.Tensor,
+    metallic: torch.Tensor,
+    roughness: torch.Tensor,
+    visibility: torch.Tensor | None = None,
+    multiscatter: bool = True,
+) -> torch.Tensor:
+    """Sum over the L area lights of batch item ``item`` of the Cook-Torrance radiance at
+    M packed pixels of that item (the area-light form of
+    :func:`~torchraster.shading.lighting.cook_torrance_lights`; arguments alike).
+
+    Args:
+        lights: area lights ``(B, L, ...)``.
+        item: the batch item whose lights shade these pixels.
+        position, normal, view: ``(3, M)`` world position, unit normal, unit direction to
+            the eye.
+        albedo: ``(3, M)``; metallic, roughness: ``(1, M)``.
+        visibility: ``(L, M)`` fraction of each light reaching each pixel, or None.
+        multiscatter: energy compensation as for punctual lights.
+
+    Returns:
+        ``(3, M)`` outgoing radiance.
+    """
+    corners = polygon_corners(lights, item)  # (L, K, 3)
+    n_v = (normal * view).sum(0)  # (M,)
+    nv = n_v.clamp(MIN_COS, 1.0)
+    rough = roughness[0].clamp(MIN_ROUGHNESS, 1.0)
+    frame = local_frame(normal.T, view.T)  # (M, 3, 3) rows t1, t2, n
+    # vertices relative to each pixel, in its frame: (L, M, K, 3)
+    rel = corners[:, None] - position.T[None, :, None]
+    local = torch.einsum("mij,lmkj->lmki", frame, rel)
+    diffuse = polygon_form_factor(local)  # (L, M)
+    m_inv = ltc_inverse(rough, nv)  # (M, 3, 3)
+    specular = polygon_form_factor(torch.einsum("mij,lmkj->lmki", m_inv, local))
+    # emitting side: one-sided lights light the half-space u x v points to; both integrals
+    # are positive there (counter-clockwise seen from the pixel), negative behind
+    facing = torch.linalg.cross(lights.u[item], lights.v[item])  # (L, 3)
+    side = (facing * lights.position[item]).sum(1, keepdim=True) - facing @ position  # (L, M)
+    weight = torch.where(lights.two_sided[item][:, None], -torch.sign(side),
+                         (side < 0).to(side.dtype))
+    if visibility is not None:
+        weight = weight * visibility
+    diffuse, specular = diffuse * weight, specular * weight
+    f0, kd = specular_f0(albedo, metallic), diffuse_color(albedo, metallic)
+    lut = dfg_lut(DFG_LUT_SIZE, DFG_LUT_SAMPLES, device=f0.device, dtype=f0.dtype)
+    a, b = lookup_dfg(lut, nv.view(1, 1, 1, -1), rough.view(1, 1, 1, -1))
+    spec_albedo = f0 * a.view(1, -1) + b.view(1, -1)
+    if multiscatter:
+        ms, kd_scale = energy_terms(f0, nv[None], rough[None], lut)
+        spec_albedo, kd = spec_albedo * ms, kd * kd_scale
+    color = (lights.color[item] * lights.intensity[item][:, None]).T  # (3, L)
+    return kd * (color @ diffuse) + spec_albedo * (color @ specular)
