@@ -29,7 +29,7 @@ from torchraster.shading.brdf import MIN_COS, MIN_ROUGHNESS
 from torchraster.shading.energy import DFG_LUT_SAMPLES, DFG_LUT_SIZE, energy_terms
 from torchraster.shading.ibl import dfg_lut, lookup_dfg
 from torchraster.shading.lights import AreaLights
-from torchraster.shading.ltc import local_frame, ltc_inverse, polygon_form_factor
+from torchraster.shading.ltc import form_factor_components, frame_rows, ltc_coefficients
 
 #: Sides of the regular polygon a disc is shaded as (same area as the disc): the relative
 #: error of its form factor against the exact disc is below 1e-3 at any distance
@@ -93,13 +93,13 @@ def area_lights(
     n_v = (normal * view).sum(0)  # (M,)
     nv = n_v.clamp(MIN_COS, 1.0)
     rough = roughness[0].clamp(MIN_ROUGHNESS, 1.0)
-    frame = local_frame(normal.T, view.T)  # (M, 3, 3) rows t1, t2, n
-    # vertices relative to each pixel, in its frame: (L, M, K, 3)
-    rel = corners[:, None] - position.T[None, :, None]
-    local = torch.einsum("mij,lmkj->lmki", frame, rel)
-    diffuse = polygon_form_factor(local)  # (L, M)
-    m_inv = ltc_inverse(rough, nv)  # (M, 3, 3)
-    specular = polygon_form_factor(torch.einsum("mij,lmkj->lmki", m_inv, local))
+    frame = frame_rows(normal.unbind(0), view.unbind(0))  # rows t1, t2, n: 3 x (x, y, z)
+    # the vertices relative to each pixel in its frame, component by component: (L, K, M)
+    rel = [corners[..., k, None] - position[k] for k in range(3)]
+    x, y, z = ((r[0] * rel[0]).addcmul_(r[1], rel[1]).addcmul_(r[2], rel[2]) for r in frame)
+    diffuse = form_factor_components(x, y, z, dim=1)  # (L, M)
+    a, b, c, d = ltc_coefficients(rough, nv)  # M^-1 = [[a, 0, b], [0, c, 0], [d, 0, 1]]
+    specular = form_factor_components(a * x + b * z, c * y, d * x + z, dim=1)
     # emitting side: one-sided lights light the half-space u x v points to; both integrals
     # are positive there (counter-clockwise seen from the pixel), negative behind
     facing = torch.linalg.cross(lights.u[item], lights.v[item])  # (L, 3)

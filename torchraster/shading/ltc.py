@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchraster.numerics import compute_dtype, finish_low_precision, safe_normalize
+from torchraster.numerics import compute_dtype, finish_low_precision
 
 #: The fitted table; written by ``scripts/fit_ltc.py``.
 TABLE_PATH: Path = Path(__file__).resolve().parent.parent / "assets" / "ltc" / "ggx_ltc.npy"
@@ -81,9 +81,9 @@ def ltc_table(
     return _load_table(TABLE_PATH, torch.device(device or "cpu"), dtype)
 
 
-def ltc_inverse(roughness: torch.Tensor, n_dot_v: torch.Tensor) -> torch.Tensor:
-    """The fitted inverse LTC matrix M^-1 in the local frame (n = z, v in the xz plane),
-    bilinear in the table, differentiable with respect to both inputs.
+def ltc_coefficients(roughness: torch.Tensor, n_dot_v: torch.Tensor) -> torch.Tensor:
+    """The entries ``(a, b, c, d)`` of the fitted M^-1 (see :func:`ltc_inverse`), bilinear
+    in the table, differentiable with respect to both inputs.
 
     Args:
         roughness: perceptual roughness, clamped to [0, 1] (below MIN_ROUGHNESS the table
@@ -91,16 +91,9 @@ def ltc_inverse(roughness: torch.Tensor, n_dot_v: torch.Tensor) -> torch.Tensor:
         n_dot_v: cosine of the view angle, clamped to [0, 1].
 
     Returns:
-        ``(..., 3, 3)`` M^-1 = ``[[a, 0, b], [0, c, 0], [d, 0, 1]]``, ``...`` the broadcast
-        shape of the inputs, in their promoted dtype (float16 / bfloat16: looked up in
-        float32 and cast back).
-
-    Example:
-        >>> m = ltc_inverse(torch.tensor([0.5]), torch.tensor([1.0]))
-        >>> m.shape, round(m[0, 1, 0].item(), 6), m[0, 2, 2].item()
-        (torch.Size([1, 3, 3]), 0.0, 1.0)
+        ``(4, ...)``, ``...`` the broadcast shape of the inputs, in their compute dtype
+        (float16 / bfloat16 inputs: float32).
     """
-    out = torch.promote_types(roughness.dtype, n_dot_v.dtype)
     dt = compute_dtype(roughness, n_dot_v)
     r, nv = torch.broadcast_tensors(roughness.to(dt), n_dot_v.to(dt))
     table = ltc_table(r.device, dt)
@@ -113,35 +106,96 @@ def ltc_inverse(roughness: torch.Tensor, n_dot_v: torch.Tensor) -> torch.Tensor:
     i = x.detach().floor().clamp(0, rows - 2).long()
     j = y.detach().floor().clamp(0, cols - 2).long()
     fx, fy = x - i, y - j  # weights carry the gradients
-    abcd = ((table[:, i, j] * (1 - fy) + table[:, i, j + 1] * fy) * (1 - fx)
-            + (table[:, i + 1, j] * (1 - fy) + table[:, i + 1, j + 1] * fy) * fx)
-    a, b, c, d = abcd.unbind(0)
+    flat = table.reshape(4, -1)
+    first = (i * cols + j).reshape(-1)
+
+    def node(offset: int) -> torch.Tensor:  # the four entries at node (i, j) + offset
+        return flat.index_select(1, first + offset).view(4, *i.shape)
+
+    return ((node(0) * (1 - fy) + node(1) * fy) * (1 - fx)
+            + (node(cols) * (1 - fy) + node(cols + 1) * fy) * fx)
+
+
+def ltc_inverse(roughness: torch.Tensor, n_dot_v: torch.Tensor) -> torch.Tensor:
+    """The fitted inverse LTC matrix M^-1 in the local frame (n = z, v in the xz plane),
+    bilinear in the table, differentiable with respect to both inputs.
+
+    Args:
+        roughness, n_dot_v: as in :func:`ltc_coefficients`.
+
+    Returns:
+        ``(..., 3, 3)`` M^-1 = ``[[a, 0, b], [0, c, 0], [d, 0, 1]]``, ``...`` the broadcast
+        shape of the inputs, in their promoted dtype (float16 / bfloat16: looked up in
+        float32 and cast back).
+
+    Example:
+        >>> m = ltc_inverse(torch.tensor([0.5]), torch.tensor([1.0]))
+        >>> m.shape, round(m[0, 1, 0].item(), 6), m[0, 2, 2].item()
+        (torch.Size([1, 3, 3]), 0.0, 1.0)
+    """
+    out = torch.promote_types(roughness.dtype, n_dot_v.dtype)
+    a, b, c, d = ltc_coefficients(roughness, n_dot_v).unbind(0)
     zero, one = torch.zeros_like(a), torch.ones_like(a)
     m_inv = torch.stack((a, zero, b, zero, c, zero, d, zero, one), -1)
     return finish_low_precision(m_inv.unflatten(-1, (3, 3)), out)
 
 
-def _unit(x: torch.Tensor) -> torch.Tensor:
-    """``x / |x|`` over the last axis, 0 (zero gradient) for vectors whose squared length
-    underflows: scale-free, unlike the default threshold of ``safe_normalize``."""
-    return safe_normalize(x, dim=-1, eps=torch.finfo(x.dtype).tiny)
+def _unit(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor
+          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The components of ``(x, y, z) / |(x, y, z)|``, 0 (zero gradient) for vectors whose
+    squared length underflows (scale-free, unlike the default threshold of
+    ``safe_normalize``)."""
+    n2 = x * x + y * y + z * z
+    ok = n2 > torch.finfo(n2.dtype).tiny
+    inv = torch.rsqrt(torch.where(ok, n2, torch.ones_like(n2))) * ok
+    return x * inv, y * inv, z * inv
 
 
-def _edge_integral(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """``theta * normalize(b x a).z`` for the edge from ``a`` to ``b`` (..., 3), theta the
-    angle between them: one term of the vector form factor (Lambert; Baum, Rushmeier and
-    Winget 1989, eq. 7; Arvo 1995). ``theta / sin(theta) = atan2(|b x a|, a.b) / |b x a|``,
-    accurate at every angle. Where ``|b x a| <= eps`` the term is 0 (value and gradient):
-    a degenerate edge (a = b, or an edge shorter than rounding: exactly 0 however the cross
-    product rounds), the shading point on the edge (a = -b: the limit depends on the side)
-    or on a vertex (a = 0). Returns ``(...)``."""
-    a, b = _unit(a), _unit(b)
-    c = torch.linalg.cross(b, a, dim=-1)
-    sin2 = (c * c).sum(-1)
-    ok = sin2 > torch.finfo(a.dtype).eps ** 2
+def _edge_integral(a: tuple[torch.Tensor, ...], b: tuple[torch.Tensor, ...]) -> torch.Tensor:
+    """``theta * normalize(b x a).z`` for the edges from the unit vectors ``a`` to ``b``
+    (each a tuple of the x, y, z component tensors; 0 vectors allowed), theta the angle
+    between them: one term of the vector form factor (Lambert; Baum, Rushmeier and Winget
+    1989, eq. 7; Arvo 1995). ``theta / sin(theta) = atan2(|b x a|, a.b) / |b x a|``
+    (accurate at every angle; the full cross product keeps short, distant edges exact)
+    with its limits where ``|b x a|`` vanishes: 1 for a degenerate edge (a = b: the term
+    is exactly 0) and 0 when the shading point lies on the edge (a = -b) or a vertex
+    (a = 0)."""
+    ax, ay, az = a
+    bx, by, bz = b
+    cx, cy, cz = by * az - bz * ay, bz * ax - bx * az, bx * ay - by * ax
+    sin2 = cx * cx + cy * cy + cz * cz
+    cos = ax * bx + ay * by + az * bz
+    ok = sin2 > torch.finfo(sin2.dtype).eps ** 2
     sin = torch.sqrt(torch.where(ok, sin2, torch.ones_like(sin2)))
-    theta = torch.atan2(sin, (a * b).sum(-1))
-    return torch.where(ok, theta / sin * c[..., 2], torch.zeros_like(sin))
+    theta_over_sin = torch.where(ok, torch.atan2(sin, cos) / sin, (cos > 0).to(cos.dtype))
+    return theta_over_sin * cz
+
+
+def form_factor_components(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor, dim: int = -1
+                           ) -> torch.Tensor:
+    """:func:`polygon_form_factor` of polygons given as component tensors: ``x``, ``y``,
+    ``z`` of one shape, the K vertices along ``dim`` (every op then runs on long contiguous
+    rows, e.g. ``(K, N)`` for N polygons with ``dim=0``). Returns that shape without
+    ``dim``, in the inputs' dtype (compute in float32 or wider)."""
+    a = _unit(x, y, z)  # each vertex as a direction, once
+    b = tuple(t.roll(-1, dims=dim) for t in a)  # edge i runs from vertex i to vertex i + 1
+    above_a, above_b = a[2] >= 0, b[2] >= 0
+    crosses = above_a != above_b
+    if not bool(crosses.any()):  # no polygon crosses the horizon: nothing to clip
+        return torch.where(above_a, _edge_integral(a, b), 0.0).sum(dim) * (0.5 / math.pi)
+    # where an edge crosses the horizon z = 0: the same direction on the chord between the
+    # unit vectors as on the edge itself (both lie in the plane of the edge and the origin)
+    t = a[2] / torch.where(crosses, a[2] - b[2], torch.ones_like(z)) * crosses
+    h = _unit(a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1]), torch.zeros_like(z))
+    start = tuple(torch.where(above_a, p, q) for p, q in zip(a, h, strict=True))
+    end = tuple(torch.where(above_b, p, q) for p, q in zip(b, h, strict=True))
+    edges = torch.where(above_a | above_b, _edge_integral(start, end), 0.0).sum(dim)
+    # a convex polygon crosses the horizon at most once each way: the masked sums pick
+    # the exit and entry points (both 0, and the horizon term 0, when it does not cross)
+    leaving, entering = above_a & ~above_b, ~above_a & above_b
+    exit_point = tuple((q * leaving).sum(dim) for q in h)
+    entry_point = tuple((q * entering).sum(dim) for q in h)
+    return (edges + _edge_integral(exit_point, entry_point)) * (0.5 / math.pi)
 
 
 def polygon_form_factor(p: torch.Tensor) -> torch.Tensor:
@@ -154,6 +208,7 @@ def polygon_form_factor(p: torch.Tensor) -> torch.Tensor:
     normalize(p_{i+1} x p_i).z`` (Lambert's formula; Baum, Rushmeier and Winget 1989,
     "Improving radiosity solutions through the use of analytically determined
     form-factors", eq. 7). A polygon covering the whole upper hemisphere gives 1.
+    :func:`form_factor_components` is the same on component tensors.
 
     Sign: F > 0 when the vertices run counter-clockwise as seen from the shading point
     (the origin), i.e. when the polygon's right-hand normal
@@ -176,28 +231,11 @@ def polygon_form_factor(p: torch.Tensor) -> torch.Tensor:
     Example:
         >>> square = torch.tensor([[1.0, 1, 1], [-1, 1, 1], [-1, -1, 1], [1, -1, 1]])
         >>> round(polygon_form_factor(square.flip(0)).item(), 4)  # seen counter-clockwise
-        0.5541
-        >>> round(polygon_form_factor(square).item(), 4)  # its back face
-        -0.5541
+        0.5
     """
-    dt = compute_dtype(p)
-    a = p.to(dt)
-    b = a.roll(-1, dims=-2)  # edge i runs from vertex i to vertex i + 1
-    za, zb = a[..., 2], b[..., 2]
-    above_a, above_b = za >= 0, zb >= 0
-    crosses = above_a != above_b
-    t = za / torch.where(crosses, za - zb, torch.ones_like(za)) * crosses
-    x = torch.lerp(a, b, t[..., None])  # where the edge crosses the horizon (exact ends)
-    x = torch.cat((x[..., :2], torch.zeros_like(x[..., 2:])), -1)  # z = 0 exactly
-    start = torch.where(above_a[..., None], a, x)
-    end = torch.where(above_b[..., None], b, x)
-    edges = torch.where(above_a | above_b, _edge_integral(start, end), 0.0).sum(-1)
-    # a convex polygon crosses the horizon at most once each way: the masked sums pick
-    # the exit and entry points (both 0, and the horizon term 0, when it does not cross)
-    exit_point = (x * (above_a & ~above_b)[..., None]).sum(-2)
-    entry_point = (x * (~above_a & above_b)[..., None]).sum(-2)
-    horizon = _edge_integral(exit_point, entry_point)
-    return finish_low_precision((edges + horizon) / (2.0 * math.pi), p.dtype)
+    q = p.to(compute_dtype(p))
+    return finish_low_precision(form_factor_components(q[..., 0], q[..., 1], q[..., 2]),
+                                p.dtype)
 
 
 def ltc_integral(p: torch.Tensor, m_inv: torch.Tensor) -> torch.Tensor:
@@ -226,14 +264,35 @@ def ltc_integral(p: torch.Tensor, m_inv: torch.Tensor) -> torch.Tensor:
     return finish_low_precision(polygon_form_factor(q), torch.promote_types(p.dtype, m_inv.dtype))
 
 
-def _any_tangent(n: torch.Tensor) -> torch.Tensor:
-    """A unit vector orthogonal to the unit vector ``n`` (..., 3), branch-free and smooth
-    away from n.z = 0 (Duff, Burgess, Christensen, Hery, Kensler, Liani and Villemin 2017,
-    "Building an orthonormal basis, revisited", listing 3)."""
-    x, y, z = n.unbind(-1)
-    sign = torch.where(z >= 0, 1.0, -1.0).to(n.dtype)
+def _any_tangent(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A unit vector orthogonal to the unit vector ``(x, y, z)`` (component tensors),
+    branch-free and smooth away from z = 0 (Duff, Burgess, Christensen, Hery, Kensler,
+    Liani and Villemin 2017, "Building an orthonormal basis, revisited", listing 3)."""
+    sign = torch.where(z >= 0, 1.0, -1.0).to(z.dtype)
     k = -1.0 / (sign + z)
-    return torch.stack((1.0 + sign * x * x * k, sign * x * y * k, -sign * x), -1)
+    return 1.0 + sign * x * x * k, sign * x * y * k, -sign * x
+
+
+def frame_rows(n: tuple[torch.Tensor, ...], v: tuple[torch.Tensor, ...]
+               ) -> tuple[tuple[torch.Tensor, ...], ...]:
+    """:func:`local_frame` on component tensors: ``n``, ``v`` the (x, y, z) components
+    (broadcastable tensors); returns the rows ``(t1, t2, n)``, each a tuple of its x, y, z
+    components."""
+    nx, ny, nz = _unit(*n)
+    vx, vy, vz = v
+    nv = nx * vx + ny * vy + nz * vz
+    w = (vx - nx * nv, vy - ny * nv, vz - nz * nv)
+    nw = nx * w[0] + ny * w[1] + nz * w[2]
+    w = (w[0] - nx * nw, w[1] - ny * nw, w[2] - nz * nw)  # twice: orthogonal to rounding
+    sq = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+    fi = torch.finfo(sq.dtype)  # |w| < sqrt(eps) |v|: v within ~3e-4 rad (float32) of n
+    ok = sq > ((vx * vx + vy * vy + vz * vz) * fi.eps).clamp_min(fi.tiny)
+    inv = torch.rsqrt(torch.where(ok, sq, torch.ones_like(sq)))
+    t1 = tuple(torch.where(ok, c * inv, t) for c, t in zip(w, _any_tangent(nx, ny, nz),
+                                                            strict=True))
+    t2 = (ny * t1[2] - nz * t1[1], nz * t1[0] - nx * t1[2], nx * t1[1] - ny * t1[0])
+    return t1, t2, (nx, ny, nz)
 
 
 def local_frame(n: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
@@ -241,7 +300,7 @@ def local_frame(n: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     ``t2 = n x t1`` (right-handed: a rotation, so polygon orientations are kept), so that
     ``p_local = frame @ p_world`` puts the normal on +z and v in the xz plane with x >= 0.
     When v is parallel to n, t1 is any tangent (the lobe is then rotationally symmetric);
-    values and gradients stay finite.
+    values and gradients stay finite. :func:`frame_rows` is the same on components.
 
     Args:
         n: ``(..., 3)`` surface normal (normalised here; a zero normal gives a singular,
@@ -258,13 +317,5 @@ def local_frame(n: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """
     dt = compute_dtype(n, v)
     n, v = torch.broadcast_tensors(n.to(dt), v.to(dt))
-    n = _unit(n)
-    w = v - n * (n * v).sum(-1, keepdim=True)
-    w = w - n * (n * w).sum(-1, keepdim=True)  # twice is enough: orthogonal to rounding
-    sq = (w * w).sum(-1, keepdim=True)
-    fi = torch.finfo(dt)  # |w| < sqrt(eps) |v|: v within ~3e-4 rad (float32) of n: any t1
-    ok = sq > ((v * v).sum(-1, keepdim=True) * fi.eps).clamp_min(fi.tiny)
-    t1 = torch.where(ok, w * torch.rsqrt(torch.where(ok, sq, torch.ones_like(sq))),
-                     _any_tangent(n))
-    t2 = torch.linalg.cross(n, t1, dim=-1)
-    return torch.stack((t1, t2, n), -2)
+    rows = frame_rows(n.unbind(-1), v.unbind(-1))
+    return torch.stack([torch.stack(row, -1) for row in rows], -2)
