@@ -5,6 +5,7 @@ transformed cosines and shadow maps."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -309,5 +310,22 @@ def test_yaml_area_lights_render(tmp_path) -> None:
     assert ("area", 2) in plan.lights
     sizes = {round(g[2].light_size, 4) for g in plan.shadow_lights}
     assert sizes == {round(math.sqrt(0.5 / math.pi), 4), 0.25}  # the lights' own radii
+    # PCSS with many taps (wide penumbrae), from the YAML block's defaults and the renderer's
+    assert {(g[2].filter, g[2].pcf_taps) for g in plan.shadow_lights} == {("pcss", 16)}
+    given = dataclasses.replace(cfg.area, shadow=tr.ShadowSettings(filter="pcf", pcf_taps=4))
+    plan = renderer.plan(scene, tr.Lights(area=given))
+    assert {(g[2].filter, g[2].pcf_taps) for g in plan.shadow_lights} == {("pcf", 4)}
     out = renderer(scene, view, proj, cfg)
     assert bool(torch.isfinite(out.image).all()) and float(out.image.max()) > 0
+
+
+def test_the_shipped_area_config_renders():
+    """configs/area_lights.yaml (small): a softbox with PCSS shadows and a two-sided disc."""
+    from pathlib import Path
+
+    cfg = tr.load_config(Path(__file__).resolve().parents[1] / "configs" / "area_lights.yaml")
+    tr.config.check_config(cfg)
+    cfg.render.resolution = 16
+    (view,) = tr.render_config(cfg)
+    assert any(s.startswith("shadow area[0]") and "pcss" in s for s in view.plan), view.plan
+    assert bool(torch.isfinite(view.images["color"]).all())

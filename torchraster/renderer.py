@@ -65,7 +65,7 @@ from .settings import (
 )
 from .shading.ibl import Environment, content_key, shade_ibl
 from .shading.lighting import shade
-from .shading.lights import LIGHT_KINDS, Lights, area_equivalent_radius
+from .shading.lights import AREA_SHADOW_TAPS, LIGHT_KINDS, Lights, area_equivalent_radius
 from .shading.models import get_model
 from .shading.shadows import (
     ShadowMapCache,
@@ -1316,11 +1316,14 @@ def area_shadow_settings(lights, i: int, given: bool, settings: ShadowSettings
     """The shadow settings of area light ``i``: a cube map from its centre, filtered with
     PCSS whose light size is the radius of the disc of the light's area (the largest over
     the batch; :func:`~torchraster.shading.lights.area_equivalent_radius`). ``settings``:
-    the light's own (``given``: its filter is kept) or the renderer's default (its filter
-    becomes ``"pcss"``)."""
+    the light's own (``given``: its filter and taps are kept) or the renderer's default
+    (its filter becomes ``"pcss"``, with at least
+    :data:`~torchraster.shading.lights.AREA_SHADOW_TAPS` taps)."""
     radius = float(area_equivalent_radius(lights.select(slice(i, i + 1))).detach().amax())
-    return dataclasses.replace(settings, light_size=radius,
-                               filter=settings.filter if given else "pcss")
+    if given:
+        return dataclasses.replace(settings, light_size=radius)
+    return dataclasses.replace(settings, light_size=radius, filter="pcss",
+                               pcf_taps=max(settings.pcf_taps, AREA_SHADOW_TAPS))
 
 
 def _caster_bounds(positions: torch.Tensor, faces: torch.Tensor,

@@ -51,6 +51,7 @@ from ..settings import (
 )
 from ..shading.ibl import SPECULAR_MODES, Environment
 from ..shading.lights import (
+    AREA_SHADOW_TAPS,
     DEFAULT_COLOR,
     DEFAULT_DIRECTION,
     DEFAULT_INNER_CONE_ANGLE,
@@ -753,12 +754,14 @@ class ShadowConfig(_Strict):
 
 
 class AreaShadowConfig(ShadowConfig):
-    """Shadow maps of an area light: a cube map from its centre, filtered with PCSS by
-    default; the PCSS light size is the light's own (``light_size`` is refused)."""
+    """Shadow maps of an area light: a cube map from its centre, filtered with PCSS of 16
+    taps by default; the PCSS light size is the light's own (``light_size`` is refused)."""
 
     filter: Literal[FILTERS] = Field(  # type: ignore[valid-type]
         "pcss", description="pcss (default: a penumbra from the light's own size), hard, pcf "
         "or vsm")
+    pcf_taps: Annotated[int, _shadow_bounds("pcf_taps")] = Field(
+        AREA_SHADOW_TAPS, description="taps of pcf / pcss (wide penumbrae need many)")
 
 
 class _LightConfigBase(_Strict):

@@ -31,9 +31,10 @@ from torchraster.shading.ibl import dfg_lut, lookup_dfg
 from torchraster.shading.lights import AreaLights
 from torchraster.shading.ltc import form_factor_components, frame_rows, ltc_coefficients
 
-#: Sides of the regular polygon a disc is shaded as (same area as the disc): the relative
-#: error of its form factor against the exact disc is below 1e-3 at any distance
-#: (docs/benchmarks.md, section area).
+#: Sides of the regular polygon a disc is shaded as (same area as the disc). Its form
+#: factor's error against the exact disc, relative to the largest: below 4e-3 for
+#: receivers a fifth of the radius away or farther, up to 7e-2 next to the rim at a
+#: twentieth (8 sides: 4e-2 and 0.2; docs/benchmarks.md, section area).
 DISC_SIDES: int = 16
 
 #: Rectangle corners in (s, t) of ``position + s u + t v``, counter-clockwise about u x v.

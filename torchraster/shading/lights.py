@@ -260,6 +260,11 @@ class SpotLights(_LightSet):
             self.cast_shadows = torch.zeros(b, n, dtype=torch.bool, device=self.color.device)
 
 
+#: PCSS taps of an area light's shadow unless its settings say otherwise: wide penumbrae
+#: need many (4 taps show 4 shifted copies of the shadow's edge; docs/benchmarks.md, area).
+AREA_SHADOW_TAPS: int = 16
+
+
 @dataclass
 class AreaLights(_LightSet):
     """Area lights: rectangles (parallelograms) and discs (ellipses) of constant luminance.
@@ -272,9 +277,9 @@ class AreaLights(_LightSet):
     ``intensity * A`` candela; ``disc`` ``(B, L)`` bool (default False: rectangles);
     ``two_sided`` ``(B, L)`` bool (default False: only the ``u x v`` side emits);
     ``cast_shadows`` / ``shadow`` as for point lights (the shadow of an area light is
-    filtered with PCSS by default, its light size the light's own, see
-    :func:`area_equivalent_radius`). :func:`area_light_axes` makes ``u`` and ``v`` from a
-    facing direction and a size.
+    filtered with PCSS of :data:`AREA_SHADOW_TAPS` taps by default, its light size the
+    light's own, see :func:`area_equivalent_radius`). :func:`area_light_axes` makes ``u``
+    and ``v`` from a facing direction and a size.
     """
 
     position: torch.Tensor
