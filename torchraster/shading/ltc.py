@@ -231,7 +231,9 @@ def polygon_form_factor(p: torch.Tensor) -> torch.Tensor:
     Example:
         >>> square = torch.tensor([[1.0, 1, 1], [-1, 1, 1], [-1, -1, 1], [1, -1, 1]])
         >>> round(polygon_form_factor(square.flip(0)).item(), 4)  # seen counter-clockwise
-        0.5
+        0.5541
+        >>> round(polygon_form_factor(square).item(), 4)  # its back face
+        -0.5541
     """
     q = p.to(compute_dtype(p))
     return finish_low_precision(form_factor_components(q[..., 0], q[..., 1], q[..., 2]),
