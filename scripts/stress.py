@@ -28,8 +28,8 @@ zero-area triangle), rendered forward and backward through ``tr.Renderer``:
   plane, from below or of length 1e-15, point and spot lights exactly on a vertex, inside
   the sphere or 1e6 away, ranges 1e-6 to inf, cones of zero width or pi/2; in half of the
   scenes 1-3 area lights (rectangles and discs, one- or two-sided, half-extents 1e-6 to
-  1e3 m, at the same hostile places, casting PCSS shadows or not; dropped where shading is
-  not pbr or fog is on, which refuse them);
+  1e3 m, at the same hostile places, casting PCSS shadows or not, in fog too; dropped where
+  shading is not pbr, which refuses them);
 - environment: hostile environment maps (1 to 32 rows; zero, denormal, a single 1e6 texel),
   intensities 0 to 1e6, both diffuse methods, shown as background or not;
 - grazing: all of the above at random, cameras edge-on to the plane (elevation 0 or 1e-4
@@ -423,12 +423,14 @@ R_COLUMNS = [
     ("motion_errors", "motion errors"), ("far_errors", "far-away errors"),
     ("nograd_differs", "no-grad render differs"),
     ("packed", "packed surface compared"), ("area_lit", "area-lit scenes"),
+    ("area_fog", "area-lit fog scenes"),
     ("packed_differs", "packed surface differs from frames"),
     ("motion_f16_overflow", "float16 flow grad overflow (known, not counted)"),
     ("rejected", "rejected (ValueError/TypeError)"), ("exceptions", "exceptions"),
 ]
 R_PROBLEMS = {key for key, _ in R_COLUMNS} - {"scenes", "covered", "grad_values", "rejected",
-                                               "motion_f16_overflow", "packed", "area_lit"}
+                                               "motion_f16_overflow", "packed", "area_lit",
+                                               "area_fog"}
 
 
 def _pick(gen: torch.Generator, options: tuple | list):
@@ -689,7 +691,8 @@ def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
         env is None or env.sun_threshold is None) else None  # SSR refuses an extracted sun
     fog = tr.Fog(density=_pick(gen, (0.0, 1e-3, 0.3, 50.0)), height_falloff=_pick(
         gen, (0.0, 1e-6, 0.5, 20.0)), steps=_randint(gen, 1, 8),
-        light_transmittance=_chance(gen, 0.8)) if _chance(gen, 0.15) else None
+        light_transmittance=_chance(gen, 0.8)) if _chance(
+        gen, 0.15 if lights.area is None else 0.4) else None  # area lights in fog more often
     dissolve = tr.Dissolve(threshold=_pick(gen, (0.0, 0.3, 1.0))) if _chance(gen, 0.1) else None
     supersample = _pick(gen, (1, 2)) if wild else 1
     # edge antialiasing where it is implemented (opaque materials, none of the passes below)
@@ -701,7 +704,7 @@ def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
     textures = tr.TextureSettings(
         filter=_pick(gen, ("trilinear", "bilinear", "nearest", "anisotropic")))
     multiscatter = _chance(gen, 0.8)
-    if shading != "pbr" or fog is not None:  # area lights are shaded by pbr without fog
+    if shading != "pbr":  # area lights are shaded by pbr only
         lights = dataclasses.replace(lights, area=None)
     renderer = tr.Renderer(
         res, shading=tr.ShadingSettings(shading, multiscatter=multiscatter or shading != "pbr"),
@@ -722,6 +725,7 @@ def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
         lighting.PIXEL_LIGHT_CHUNK = default_chunk
     c["covered"] += int((out.alpha > 0).sum())
     c["area_lit"] += int(any(kind == "area" for kind, _ in out.plan.lights))
+    c["area_fog"] += int(any(s.startswith("fog march") and "area" in s for s in out.plan.steps))
     c["nonfinite_image"] += _nonfinite(out.image)
     c["nonfinite_alpha"] += _nonfinite(out.alpha)
     c["nonfinite_gbuffer"] += sum(_nonfinite(v) for v in out.gbuffer.values())

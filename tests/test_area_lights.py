@@ -223,8 +223,6 @@ def test_bad_input_is_named() -> None:
                                                 dtype=torch.float32)))
     with pytest.raises(NotImplementedError, match="lights.area.*shading='blinn_phong'"):
         tr.Renderer(8, shading="blinn_phong")(scene, view, proj, lights)
-    with pytest.raises(NotImplementedError, match="lights.area.*fog"):
-        tr.Renderer(8, fog=tr.Fog(density=0.1))(scene, view, proj, lights)
 
 
 def _box(size: float = 0.5, height: float = 0.25):
@@ -329,3 +327,63 @@ def test_the_shipped_area_config_renders():
     (view,) = tr.render_config(cfg)
     assert any(s.startswith("shadow area[0]") and "pcss" in s for s in view.plan), view.plan
     assert bool(torch.isfinite(view.images["color"]).all())
+
+
+@pytest.mark.parametrize("disc", [False, True])
+def test_fluence_in_the_air_is_the_solid_angle(disc: bool) -> None:
+    """What lights a fog sample: radiance x the solid angle of the light from the sample's
+    side (one-sided: 0 behind; two-sided: both), its mean direction and the mean cosine
+    about it, against quadratures over the light's surface of ``dw = cos_light dA / d^2``
+    and ``w dw``."""
+    from torchraster.shading.area import area_incidence
+    from torchraster.testing.reference_area import light_samples
+
+    light = _light(disc=disc)
+    g = torch.Generator().manual_seed(6)
+    pts = torch.rand(40, 3, generator=g, dtype=F64) * 3 - 1.5  # in front and behind
+    y, d_a, n_l = light_samples(light["position"], light["u"], light["v"], disc=disc,
+                                samples=400**2)
+    to = y[None] - pts[:, None]  # (N, S, 3)
+    d2 = (to * to).sum(-1)
+    cos_l = -(to * n_l).sum(-1) / d2.sqrt()  # > 0 where the point is on the emitting side
+    d_omega = cos_l.abs() * d_a / d2
+    omega = d_omega.sum(1)
+    phi = (to / d2.sqrt()[..., None] * d_omega[..., None]).sum(1)  # (N, 3)
+    for two_sided in (False, True):
+        lights = _area_lights({**light, "two_sided": two_sided})
+        l, e, mu = area_incidence(lights, pts.T.reshape(1, 3, 1, -1))
+        seen = (cos_l[:, 0] > 0) | two_sided
+        torch.testing.assert_close(e[0, 0, 0, 0], 2.0 * omega * seen, rtol=2e-3, atol=1e-9)
+        mean = phi / phi.norm(dim=1, keepdim=True) * seen[:, None]
+        torch.testing.assert_close(l[0, 0, :, 0].T, mean, rtol=0, atol=2e-3)
+        torch.testing.assert_close(mu[0, 0, 0, 0], phi.norm(dim=1) / omega, rtol=2e-3,
+                                   atol=0)
+
+
+def test_fog_is_lit_and_dimmed_by_area_lights() -> None:
+    """Fog with a shadow-casting area light: marched (light shafts through the cube map),
+    the surfaces dimmed on the light path; finite, with gradients to the light."""
+    positions, faces, cast = raytrace.ground_scene([_box()], 4.0)
+    scene = tr.RenderScene(positions, faces, cast_shadows=cast)
+    light = _light(spec=STAGE_LIGHT, radiance=6.0, dtype=torch.float32)
+    pos = light["position"].view(1, 1, 3).clone().requires_grad_()
+    lights = tr.Lights(area=tr.AreaLights(position=pos, u=light["u"].view(1, 1, 3),
+                                          v=light["v"].view(1, 1, 3), color=torch.ones(1, 1, 3),
+                                          intensity=torch.full((1, 1), 6.0),
+                                          cast_shadows=torch.tensor([[True]])))
+    view = tr.camera.look_at(torch.tensor([[0.0, 3.0, 2.5]]), torch.tensor([[0.0, 0.0, 0.3]]))
+    proj = tr.camera.perspective(50.0, 1.0, 0.1)
+    fog = tr.Fog(density=0.3, height_falloff=0.5, steps=8, jitter=False, blur=0.0)
+    foggy = tr.Renderer(24, fog=fog)(scene, view, proj, lights)
+    assert any(s.startswith("fog march 8 steps: area[0] shadowed") for s in foggy.plan.steps)
+    assert any(s == "fog light path: area[0]" for s in foggy.plan.steps), foggy.plan.steps
+    (grad,) = torch.autograd.grad(foggy.image.sum(), pos)
+    assert bool(torch.isfinite(foggy.image).all()) and bool(torch.isfinite(grad).all())
+    assert float(grad.abs().sum()) > 0
+    with torch.no_grad():  # the air in front of the empty background glows
+        clear = tr.Renderer(24)(scene, view, proj, lights).image
+        dark = tr.Renderer(24, fog=dataclasses.replace(fog, color=(0.0, 0.0, 0.0)))(
+            scene, view, proj, lights).image
+    empty = clear[0].sum(0) == 0
+    assert bool(empty.any()) and float(foggy.image.detach()[0][:, empty].min()) > 0
+    assert float(dark[0][:, empty].abs().max()) == 0.0

@@ -570,9 +570,6 @@ class Renderer(nn.Module):
             if LIT_MODELS[shading] != "cook_torrance":
                 raise NotImplementedError(f"lights.area: area lights are shaded by the pbr "
                                           f"model only, not by shading={shading!r}")
-            if self.fog is not None:
-                raise NotImplementedError("lights.area: fog is not lit or dimmed by area "
-                                          "lights yet; use point or spot lights with fog")
         ssr = self._plan_ssr(scene, shading, alpha)
         if ssr and environment is not None and environment.sun_threshold is not None:
             raise NotImplementedError(
@@ -673,7 +670,7 @@ class Renderer(nn.Module):
             analytic.append("environment")
         shadowed = {(kind, i) for kind, ids, _ in shadow_lights for i in ids}
         dimmed = []
-        for kind in ("directional", "point", "spot"):
+        for kind in LIGHT_KINDS:
             part = None if lights is None else getattr(lights, kind)
             for i in range(0 if part is None else part.count):
                 dimmed.append(f"{kind}[{i}]")

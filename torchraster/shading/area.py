@@ -24,7 +24,7 @@ import math
 
 import torch
 
-from torchraster.numerics import diffuse_color, specular_f0
+from torchraster.numerics import diffuse_color, safe_normalize, specular_f0
 from torchraster.shading.brdf import MIN_COS, MIN_ROUGHNESS
 from torchraster.shading.energy import DFG_LUT_SAMPLES, DFG_LUT_SIZE, energy_terms
 from torchraster.shading.ibl import dfg_lut, lookup_dfg
@@ -41,16 +41,16 @@ DISC_SIDES: int = 16
 _RECT = ((-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0))
 
 
-def polygon_corners(lights: AreaLights, item: int) -> torch.Tensor:
-    """``(L, K, 3)`` world vertices of batch item ``item``'s lights, counter-clockwise
-    about ``u x v`` (K = 4 for rectangles only, else :data:`DISC_SIDES`; a rectangle then
-    repeats its corners)."""
-    c, u, v = lights.position[item], lights.u[item], lights.v[item]  # (L, 3)
-    disc = lights.disc[item]
+def polygon_corners(lights: AreaLights, item: int | None = None) -> torch.Tensor:
+    """``(L, K, 3)`` world vertices of batch item ``item``'s lights (None: ``(B, L, K, 3)``
+    of every item), counter-clockwise about ``u x v`` (K = 4 for rectangles only, else
+    :data:`DISC_SIDES`; a rectangle then repeats its corners)."""
+    pick = (lambda t: t) if item is None else (lambda t: t[item])  # noqa: E731
+    c, u, v, disc = (pick(t) for t in (lights.position, lights.u, lights.v, lights.disc))
     dt, dev = c.dtype, c.device
     rect = torch.tensor(_RECT, dtype=dt, device=dev)  # (4, 2)
     if not bool(disc.any()):
-        st = rect[None].expand(c.shape[0], 4, 2)
+        st = rect.expand(*c.shape[:-1], 4, 2)
     else:
         k = DISC_SIDES
         phi = torch.arange(k, dtype=torch.float64) * (2 * math.pi / k)
@@ -58,8 +58,61 @@ def polygon_corners(lights: AreaLights, item: int) -> torch.Tensor:
         scale = math.sqrt(2 * math.pi / (k * math.sin(2 * math.pi / k)))
         ring = (torch.stack([phi.cos(), phi.sin()], -1) * scale).to(dt).to(dev)  # (k, 2)
         pad = rect.repeat_interleave(k // 4, 0)  # each corner k/4 times: same polygon
-        st = torch.where(disc[:, None, None], ring, pad)  # (L, k, 2)
-    return c[:, None] + st[..., :1] * u[:, None] + st[..., 1:] * v[:, None]
+        st = torch.where(disc[..., None, None], ring, pad)  # (..., k, 2)
+    return c[..., None, :] + st[..., :1] * u[..., None, :] + st[..., 1:] * v[..., None, :]
+
+
+def area_incidence(lights: AreaLights, position: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """What area lights send to points in the air (fog samples): the light's radiance times
+    the solid angle ``Omega`` its polygon subtends from its emitting side (exact: Van
+    Oosterom and Strackee 1983's triangle solid angle over a fan of the polygon), its mean
+    direction ``l`` (``Phi / |Phi|``, ``Phi = integral of w dw`` over the polygon, exact:
+    half the edges' angles times their planes' unit normals, Arvo 1995) and the mean cosine
+    ``mu = |Phi| / Omega`` of its directions about ``l`` (1 for a small light). A
+    Henyey-Greenstein phase of anisotropy g convolved with the light's spread is about
+    the phase of anisotropy ``g mu`` towards ``l`` (Legendre coefficients multiply:
+    ``g^k mu^k``; exact for ``g = 0``).
+
+    Args:
+        lights: L area lights of a batch of B scenes.
+        position: ``(B, 3, H, W)`` world positions (m).
+
+    Returns:
+        ``l``: ``(B, L, 3, H, W)`` unit mean direction towards each light (0 behind a
+        one-sided light and at its surface); ``E``: ``(B, L, 3, H, W)`` fluence
+        ``color * intensity * Omega`` (lux, RGB); ``mu``: ``(B, L, 1, H, W)`` in [0, 1].
+    """
+    corners = polygon_corners(lights)  # (B, L, K, 3)
+    rel = corners[..., None, None] - position[:, None, None]  # (B, L, K, 3, H, W)
+    a = rel[:, :, :1]
+    b, c = rel[:, :, 1:-1], rel[:, :, 2:]
+    la, lb, lc = (torch.linalg.vector_norm(t, dim=3) for t in (a, b, c))
+    num = (a * torch.linalg.cross(b, c, dim=3)).sum(3)
+    den = (la * lb * lc + (a * b).sum(3) * lc + (a * c).sum(3) * lb + (b * c).sum(3) * la)
+    ok = num * num + den * den > torch.finfo(num.dtype).tiny
+    omega = 2 * torch.atan2(torch.where(ok, num, 0.0), torch.where(ok, den, 1.0))
+    omega = omega.sum(2).abs()[:, :, None]  # (B, L, 1, H, W): the fan's triangles agree
+    facing = torch.linalg.cross(lights.u, lights.v, dim=-1)[..., None, None]  # (B, L, 3, 1, 1)
+    seen = ((position[:, None] - lights.position[..., None, None]) * facing).sum(
+        2, keepdim=True) > 0
+    seen = seen | lights.two_sided[..., None, None, None]
+    # Phi: each edge (a, b) adds theta (a x b) / |a x b| / 2, a and b unit
+    unit = safe_normalize(rel, dim=3)
+    edge_b = unit.roll(-1, dims=2)
+    cross = torch.linalg.cross(unit, edge_b, dim=3)
+    sin = torch.linalg.vector_norm(cross, dim=3, keepdim=True)
+    fine = sin > torch.finfo(sin.dtype).eps
+    theta = torch.atan2(sin, (unit * edge_b).sum(3, keepdim=True))
+    phi = 0.5 * (theta * cross / torch.where(fine, sin, 1.0) * fine).sum(2)  # (B, L, 3, H, W)
+    towards = (phi * (lights.position[..., None, None] - position[:, None])).sum(
+        2, keepdim=True)
+    phi = torch.where(towards < 0, -phi, phi)  # the orientation of the polygon's edges
+    length = torch.linalg.vector_norm(phi, dim=2, keepdim=True)
+    mu = (length / omega.clamp_min(torch.finfo(omega.dtype).tiny)).clamp(0.0, 1.0)
+    l = safe_normalize(phi, dim=2) * seen
+    e = (lights.color * lights.intensity[..., None])[..., None, None] * (omega * seen)
+    return l, e, mu
 
 
 def area_lights(

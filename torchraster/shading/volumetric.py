@@ -47,7 +47,12 @@ light), the light's illuminance ``E`` (with the range window and spot cone of
   ``"hard"``, or the VSM moments) without bias (a fog sample has no surface to shadow
   itself, and a bias would leak light into the fog just under an occluder). A separable
   joint bilateral blur guided by the log distance then removes the jitter noise without
-  bleeding across depth edges.
+  bleeding across depth edges. Area lights are marched too: ``E`` is their radiance times
+  the solid angle their polygon subtends from the sample's side (exact,
+  :func:`~torchraster.shading.area.area_incidence`), the phase evaluated towards their mean
+  direction with the anisotropy scaled by their spread's mean cosine (exact for isotropic
+  fog, ``g = 0``), their shadow the cube map from the centre, their light path the segment
+  to the centre.
 
 * **Light path** (``Fog.light_transmittance``, default on). The light is dimmed on its way
   in too: each punctual light's illuminance is multiplied by the fog's transmittance from
@@ -90,6 +95,7 @@ import torch
 
 from torchraster._validate import check_tensor
 from torchraster.numerics import LOW_PRECISION, finish_low_precision, safe_normalize
+from torchraster.shading.area import area_incidence
 from torchraster.shading.ibl import Environment
 from torchraster.shading.lights import (
     DirectionalLights,
@@ -318,11 +324,11 @@ def light_optical_depth(points: torch.Tensor, kind: str,
     Directional: the infinite ray from the point towards ``-direction`` (finite only when it
     climbs out of a height fog, ``tau = rho_p / (b l_y)``; a light at or below the horizon,
     or in homogeneous fog, gives ``inf``). Point / spot: the segment from the point to the
-    light's position (0 at the light itself).
+    light's position (0 at the light itself); area: to the light's centre.
 
     Args:
         points: ``(B, 3, H, W)`` world positions (m).
-        kind: ``"directional"``, ``"point"`` or ``"spot"``.
+        kind: ``"directional"``, ``"point"``, ``"spot"`` or ``"area"``.
         lights: that kind's L lights, batch size B (or 1).
         fog: the medium.
 
@@ -330,8 +336,9 @@ def light_optical_depth(points: torch.Tensor, kind: str,
         ``(B, L, 1, H, W)`` optical depth >= 0 (may be ``inf``); finite gradients.
     """
     check_tensor("points", points, ("B", 3, None, None), floating=True)
-    if kind not in ("directional", "point", "spot"):
-        raise ValueError(f"kind: expected 'directional', 'point' or 'spot', got {kind!r}")
+    if kind not in ("directional", "point", "spot", "area"):
+        raise ValueError(f"kind: expected 'directional', 'point', 'spot' or 'area', got "
+                         f"{kind!r}")
     py = points[:, None, 1:2]  # (B, 1, 1, H, W)
     if kind == "directional":
         l_y = -safe_normalize(lights.direction.to(points), dim=-1)[..., 1]  # (B, L)
@@ -493,8 +500,8 @@ def _volume_maps(g: ShadowMaps) -> ShadowMaps:
 
 def marched_lights(lights: Lights | None, shadow_maps: Sequence[ShadowMaps] = ()
                    ) -> dict[str, list[int]]:
-    """The lights whose in-scattering is marched: every point and spot light, and the
-    directional lights that have shadow maps.
+    """The lights whose in-scattering is marched: every point, spot and area light, and
+    the directional lights that have shadow maps.
 
     Args:
         lights: the scene's lights or None.
@@ -506,7 +513,7 @@ def marched_lights(lights: Lights | None, shadow_maps: Sequence[ShadowMaps] = ()
     out: dict[str, list[int]] = {}
     if lights is None:
         return out
-    for kind in ("point", "spot"):
+    for kind in ("point", "spot", "area"):
         part = getattr(lights, kind)
         if part is not None and part.count:
             out[kind] = list(range(part.count))
@@ -548,16 +555,20 @@ def light_source(lights: Lights, rays: torch.Tensor, g: float | torch.Tensor,
         total = torch.zeros_like(p)
         for kind, ids in kinds.items():
             part = getattr(lights, kind).select(torch.tensor(ids))
+            spread = 1.0
             if kind == "directional":
                 l = -torch.nn.functional.normalize(part.direction, dim=-1)[..., None, None]
                 e = (part.color * part.intensity[..., None])[..., None, None]
             elif kind == "point":
                 l, e = point_incidence(part, p)
+            elif kind == "area":  # its solid angle, mean direction and spread seen from p
+                l, e, spread = area_incidence(part, p)
             else:
                 l, e = spot_incidence(part, p)
             if fog is not None and fog.light_transmittance:  # dimmed on the way in
                 e = e * light_transmittance(p, kind, part, fog)
-            phase = hg_phase((l * rays[:, None]).sum(2, keepdim=True), g)  # (B, L, 1, H, W)
+            # (B, L, 1, H, W); an area light's spread softens the lobe (area_incidence)
+            phase = hg_phase((l * rays[:, None]).sum(2, keepdim=True), g * spread)
             vis = torch.ones_like(phase[..., :1, :, :].expand(-1, -1, -1, *p.shape[-2:]))
             for m in groups:
                 if m.kind != kind:
@@ -637,13 +648,13 @@ def fog_terms(distance: torch.Tensor, eye: torch.Tensor, rays: torch.Tensor, fog
             where empty (replaced by ``fog.max_distance``).
         eye: ``(B, 3)`` camera positions; rays: ``(B, 3, H, W)`` unit view directions.
         fog: the :class:`Fog`.
-        lights: the scene's lights (ambient SH, directional, point, spot) or None.
+        lights: the scene's lights (ambient SH, directional, point, spot, area) or None.
         shadow_maps: rendered shadow maps: their lights cast light shafts.
         camera_view: ``(B, 4, 4)`` world -> view (cascaded maps need it).
         bounds: ``(B, 2, 3)`` world box of the scene: each ray is marched up to the
             distance of the box's farthest corner from the eye (the box grown to hold the
-            point / spot lights); None: up to the farthest finite distance of the frame
-            (at most :data:`MAX_MARCH_DISTANCE`).
+            point / spot lights and the area lights' centres); None: up to the farthest
+            finite distance of the frame (at most :data:`MAX_MARCH_DISTANCE`).
         environment: an :class:`~torchraster.shading.ibl.Environment` lighting the fog
             like the ambient light (its 9 SH coefficients convolved with the phase, not
             dimmed on the way in), or None.
@@ -705,7 +716,7 @@ def fog_terms(distance: torch.Tensor, eye: torch.Tensor, rays: torch.Tensor, fog
             else:
                 check_tensor("bounds", bounds, (None, 2, 3), floating=True, finite=True)
                 box = bounds.to(dtype).expand(b, 2, 3)
-                for kind in ("point", "spot"):
+                for kind in ("point", "spot", "area"):
                     part = getattr(lights, kind)
                     if kind in kinds and part is not None:
                         pos = part.position.detach().to(dtype).expand(b, -1, 3)
