@@ -48,6 +48,7 @@ from benchmd import markdown_table, update_section
 from torchraster.shading import ltc
 from torchraster.shading.brdf import MIN_ROUGHNESS, d_ggx, v_smith_ggx_correlated
 from torchraster.shading.ibl import dfg_lut, lookup_dfg
+from torchraster.testing.reference_area import rectangle_corners as rectangle
 from torchraster.testing.reference_brdf import directional_albedo, heitz_v, walter_ggx
 
 F64 = torch.float64
@@ -303,22 +304,6 @@ def fit(size: int, side: int, rounds: int, iters: int, log: bool = True
 #: Report grid: perceptual roughness and view angles (degrees).
 ROUGHNESS = (0.1, 0.2, 0.3, 0.45, 0.6, 0.8, 1.0)
 VIEW_DEGREES = (0.0, 30.0, 60.0, 80.0)
-
-
-def rectangle(centre: tuple, normal: tuple, half: tuple, roll: float = 0.0) -> torch.Tensor:
-    """(4, 3) float64 corners of a rectangle with half sizes ``half`` whose front face
-    (the side its right-hand normal ``(p1 - p0) x (p2 - p1)`` points to) faces along
-    ``normal``."""
-    c = torch.tensor(centre, dtype=F64)
-    nrm = torch.tensor(normal, dtype=F64)
-    nrm = nrm / nrm.norm()
-    helper = torch.tensor([0.0, 0.0, 1.0] if abs(nrm[2]) < 0.9 else [1.0, 0.0, 0.0], dtype=F64)
-    e1 = torch.linalg.cross(helper, nrm)
-    e1 = e1 / e1.norm()
-    e2 = torch.linalg.cross(nrm, e1)
-    cr, sr = math.cos(roll), math.sin(roll)
-    e1, e2 = (cr * e1 + sr * e2) * half[0], (cr * e2 - sr * e1) * half[1]
-    return torch.stack((c - e1 - e2, c + e1 - e2, c + e1 + e2, c - e1 + e2))
 
 
 #: Rectangle lights facing the shading point (the origin, normal +z; v in the xz plane

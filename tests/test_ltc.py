@@ -19,23 +19,10 @@ from torchraster.shading.ltc import (
     ltc_table,
     polygon_form_factor,
 )
+from torchraster.testing.reference_area import rectangle_corners as quad
 from torchraster.testing.reference_brdf import directional_albedo, heitz_v, walter_ggx
 
 F64 = torch.float64
-
-
-def quad(centre, normal, half, roll=0.0, dtype=F64) -> torch.Tensor:
-    """(4, 3) corners of a rectangle whose front face (the side of its right-hand normal
-    ``(p1 - p0) x (p2 - p1)``) faces along ``normal``."""
-    c, n = torch.tensor(centre, dtype=F64), torch.tensor(normal, dtype=F64)
-    n = n / n.norm()
-    helper = torch.tensor([0.0, 0, 1] if abs(n[2]) < 0.9 else [1.0, 0, 0], dtype=F64)
-    e1 = torch.linalg.cross(helper, n)
-    e1 = e1 / e1.norm()
-    e2 = torch.linalg.cross(n, e1)
-    cr, sr = math.cos(roll), math.sin(roll)
-    e1, e2 = (cr * e1 + sr * e2) * half[0], (cr * e2 - sr * e1) * half[1]
-    return torch.stack((c - e1 - e2, c + e1 - e2, c + e1 + e2, c - e1 + e2)).to(dtype)
 
 
 def polygon_quadrature(poly: torch.Tensor, f, n: int = 300) -> float:

@@ -291,3 +291,19 @@ def form_factor_reference(points: torch.Tensor, normals: torch.Tensor, position:
 
 __all__ = ["MIN_COS", "SAMPLES", "area_light_radiance", "form_factor_reference", "light_area",
            "light_samples"]
+
+
+def rectangle_corners(centre, normal, half, roll: float = 0.0,
+                      dtype: torch.dtype = F64) -> torch.Tensor:
+    """``(4, 3)`` corners of a rectangle of half sizes ``half`` (2,) centred at ``centre``
+    (3,) whose front face (the side its right-hand normal ``(p1 - p0) x (p2 - p1)`` points
+    to) faces along ``normal`` (3,), turned by ``roll`` radians about it (test geometry)."""
+    c, n = torch.tensor(centre, dtype=F64), torch.tensor(normal, dtype=F64)
+    n = n / n.norm()
+    helper = torch.tensor([0.0, 0, 1] if abs(n[2]) < 0.9 else [1.0, 0, 0], dtype=F64)
+    e1 = torch.linalg.cross(helper, n)
+    e1 = e1 / e1.norm()
+    e2 = torch.linalg.cross(n, e1)
+    cr, sr = math.cos(roll), math.sin(roll)
+    e1, e2 = (cr * e1 + sr * e2) * half[0], (cr * e2 - sr * e1) * half[1]
+    return torch.stack((c - e1 - e2, c + e1 - e2, c + e1 + e2, c - e1 + e2)).to(dtype)
