@@ -65,7 +65,13 @@ from .settings import (
 )
 from .shading.ibl import Environment, content_key, shade_ibl
 from .shading.lighting import shade
-from .shading.lights import AREA_SHADOW_TAPS, LIGHT_KINDS, Lights, area_equivalent_radius
+from .shading.lights import (
+    AREA_SHADOW_TAPS,
+    LIGHT_KINDS,
+    AreaLights,
+    Lights,
+    area_equivalent_radius,
+)
 from .shading.models import get_model
 from .shading.shadows import (
     ShadowMapCache,
@@ -708,8 +714,8 @@ class Renderer(nn.Module):
             for i in casting:
                 settings = part.settings_of(i) or self.shadow_settings
                 if kind == "area":
-                    settings = area_shadow_settings(part, i, part.settings_of(i) is not None,
-                                                    settings)
+                    settings = _area_shadow_settings(part, i, part.settings_of(i) is not None,
+                                                     settings)
                 by_settings.setdefault(settings, []).append(i)
             groups += [(kind, tuple(ids), st) for st, ids in by_settings.items()]
         return tuple(groups)
@@ -1308,8 +1314,8 @@ def _environment_per_item(environment: Environment) -> bool:
             or (isinstance(intensity, torch.Tensor) and intensity.numel() > 1))
 
 
-def area_shadow_settings(lights, i: int, given: bool, settings: ShadowSettings
-                         ) -> ShadowSettings:
+def _area_shadow_settings(lights: AreaLights, i: int, given: bool,
+                          settings: ShadowSettings) -> ShadowSettings:
     """The shadow settings of area light ``i``: a cube map from its centre, filtered with
     PCSS whose light size is the radius of the disc of the light's area (the largest over
     the batch; :func:`~torchraster.shading.lights.area_equivalent_radius`). ``settings``:

@@ -45,8 +45,8 @@ def polygon_corners(lights: AreaLights, item: int | None = None) -> torch.Tensor
     """``(L, K, 3)`` world vertices of batch item ``item``'s lights (None: ``(B, L, K, 3)``
     of every item), counter-clockwise about ``u x v`` (K = 4 for rectangles only, else
     :data:`DISC_SIDES`; a rectangle then repeats its corners)."""
-    pick = (lambda t: t) if item is None else (lambda t: t[item])  # noqa: E731
-    c, u, v, disc = (pick(t) for t in (lights.position, lights.u, lights.v, lights.disc))
+    fields = (lights.position, lights.u, lights.v, lights.disc)
+    c, u, v, disc = fields if item is None else (t[item] for t in fields)
     dt, dev = c.dtype, c.device
     rect = torch.tensor(_RECT, dtype=dt, device=dev)  # (4, 2)
     if not bool(disc.any()):
@@ -165,8 +165,8 @@ def area_lights(
     diffuse, specular = diffuse * weight, specular * weight
     f0, kd = specular_f0(albedo, metallic), diffuse_color(albedo, metallic)
     lut = dfg_lut(DFG_LUT_SIZE, DFG_LUT_SAMPLES, device=f0.device, dtype=f0.dtype)
-    a, b = lookup_dfg(lut, nv.view(1, 1, 1, -1), rough.view(1, 1, 1, -1))
-    spec_albedo = f0 * a.view(1, -1) + b.view(1, -1)
+    scale, bias = lookup_dfg(lut, nv.view(1, 1, 1, -1), rough.view(1, 1, 1, -1))
+    spec_albedo = f0 * scale.view(1, -1) + bias.view(1, -1)  # the lobe's norm, f0 A + B
     if multiscatter:
         ms, kd_scale = energy_terms(f0, nv[None], rough[None], lut)
         spec_albedo, kd = spec_albedo * ms, kd * kd_scale
