@@ -787,6 +787,14 @@ class AmbientLightConfig(_LightConfigBase):
     sh: Annotated[list[Vec3], Field(min_length=9, max_length=9)] | None = None
 
 
+def _refuse_cascades(light: Any) -> None:
+    """Cascade keys in the ``shadows`` block of a light that is not directional."""
+    cascade_keys = {"cascades", "max_distance", "split_lambda", "cascade_blend"}
+    if light.shadows is not None and light.shadows.model_fields_set & cascade_keys:
+        raise ValueError(f"shadows.{sorted(light.shadows.model_fields_set & cascade_keys)[0]}:"
+                         " cascades are for directional lights only")
+
+
 def _check_shadow_switch(light: Any) -> Any:
     if light.cast_shadows is not None and light.shadows is not None and (
             light.cast_shadows != light.shadows.enabled):
@@ -821,10 +829,7 @@ class PointLightConfig(_LightConfigBase):
 
     @model_validator(mode="after")
     def _shadow_switch(self) -> PointLightConfig:
-        cascade_keys = {"cascades", "max_distance", "split_lambda", "cascade_blend"}
-        if self.shadows is not None and self.shadows.model_fields_set & cascade_keys:
-            raise ValueError(f"shadows.{sorted(self.shadows.model_fields_set & cascade_keys)[0]}:"
-                             " cascades are for directional lights only")
+        _refuse_cascades(self)
         return _check_shadow_switch(self)
 
 
@@ -879,10 +884,7 @@ class AreaLightConfig(_DirectionMixin, _LightConfigBase):
             if sum(c * c for c in cross) <= 1e-12 * sum(x * x for x in d) * sum(
                     x * x for x in u):
                 raise ValueError("up: must not be zero or parallel to direction")
-        cascade_keys = {"cascades", "max_distance", "split_lambda", "cascade_blend"}
-        if self.shadows is not None and self.shadows.model_fields_set & cascade_keys:
-            raise ValueError(f"shadows.{sorted(self.shadows.model_fields_set & cascade_keys)[0]}:"
-                             " cascades are for directional lights only")
+        _refuse_cascades(self)
         if self.shadows is not None and "light_size" in self.shadows.model_fields_set:
             raise ValueError("shadows.light_size: an area light's PCSS light size is its own "
                              "(the radius of the disc of its area)")
