@@ -424,3 +424,33 @@ def test_light_pose_and_size_are_recovered_from_an_image() -> None:
             opt.param_groups[0]["lr"] = 0.01
     assert float((pos.detach() - true_pos).norm()) < 0.02, pos
     torch.testing.assert_close(log_size.detach().exp(), true_size, rtol=0.03, atol=0)
+
+
+def test_batch_of_different_area_lights_equals_each_alone() -> None:
+    """Two views with their own area lights (a shadowed panel and a two-sided disc) in one
+    batch give each view rendered alone with its light (shared scene, per-item lights and
+    cameras)."""
+    positions, faces, cast = raytrace.ground_scene([_box()], 4.0)
+    scene = tr.RenderScene(positions, faces, cast_shadows=cast)
+    a = _light(spec=STAGE_LIGHT, dtype=torch.float32)
+    b = _light(disc=True, two_sided=True, spec={**STAGE_LIGHT, "position": (-0.4, 1.2, 0.5)},
+               dtype=torch.float32)
+    both = tr.AreaLights(position=torch.stack([a["position"], b["position"]])[:, None],
+                         u=torch.stack([a["u"], b["u"]])[:, None],
+                         v=torch.stack([a["v"], b["v"]])[:, None],
+                         color=torch.ones(2, 1, 3), intensity=torch.tensor([[6.0], [9.0]]),
+                         disc=torch.tensor([[False], [True]]),
+                         two_sided=torch.tensor([[False], [True]]),
+                         cast_shadows=torch.ones(2, 1, dtype=torch.bool))
+    view = tr.camera.look_at(torch.tensor([[0.0, 3.0, 2.5], [2.0, 2.0, -1.5]]),
+                             torch.zeros(2, 3))
+    proj = tr.camera.perspective(50.0, 1.0, 0.1)
+    renderer = tr.Renderer(24)
+    with torch.no_grad():
+        batch = renderer(scene, view, proj, tr.Lights(area=both)).image
+        for i in range(2):
+            own = tr.AreaLights(**{f: getattr(both, f)[i:i + 1] for f in (
+                "position", "u", "v", "color", "intensity", "disc", "two_sided",
+                "cast_shadows")})
+            alone = renderer(scene, view[i:i + 1], proj, tr.Lights(area=own)).image
+            torch.testing.assert_close(batch[i:i + 1], alone, rtol=1e-5, atol=1e-6)
