@@ -176,25 +176,42 @@ def form_factor_components(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor, di
     """:func:`polygon_form_factor` of polygons given as component tensors: ``x``, ``y``,
     ``z`` of one shape, the K vertices along ``dim`` (every op then runs on long contiguous
     rows, e.g. ``(K, N)`` for N polygons with ``dim=0``). Returns that shape without
-    ``dim``, in the inputs' dtype (compute in float32 or wider)."""
+    ``dim``, in the inputs' dtype (compute in float32 or wider). Only the polygons that
+    cross the horizon are clipped (gathered, then put back)."""
     a = _unit(x, y, z)  # each vertex as a direction, once
     b = tuple(t.roll(-1, dims=dim) for t in a)  # edge i runs from vertex i to vertex i + 1
+    above_a = a[2] >= 0
+    whole = torch.where(above_a, _edge_integral(a, b), 0.0).sum(dim) * (0.5 / math.pi)
+    crossing = (above_a != (b[2] >= 0)).any(dim)
+    if not bool(crossing.any()):  # no polygon crosses the horizon: nothing to clip
+        return whole
+    shape = whole.shape
+    idx = crossing.reshape(-1).nonzero().squeeze(1)
+
+    def take(t: torch.Tensor) -> torch.Tensor:  # (K, n) columns of the crossing polygons
+        return t.movedim(dim, 0).reshape(t.shape[dim], -1).index_select(1, idx)
+
+    clipped = _clipped(tuple(take(t) for t in a), tuple(take(t) for t in b))
+    return whole.reshape(-1).index_copy(0, idx, clipped).view(shape)
+
+
+def _clipped(a: tuple[torch.Tensor, ...], b: tuple[torch.Tensor, ...]) -> torch.Tensor:
+    """The form factor ``(n,)`` of polygons crossing the horizon: unit vertices ``a`` and
+    their successors ``b`` (components, each ``(K, n)``)."""
     above_a, above_b = a[2] >= 0, b[2] >= 0
     crosses = above_a != above_b
-    if not bool(crosses.any()):  # no polygon crosses the horizon: nothing to clip
-        return torch.where(above_a, _edge_integral(a, b), 0.0).sum(dim) * (0.5 / math.pi)
     # where an edge crosses the horizon z = 0: the same direction on the chord between the
     # unit vectors as on the edge itself (both lie in the plane of the edge and the origin)
-    t = a[2] / torch.where(crosses, a[2] - b[2], torch.ones_like(z)) * crosses
-    h = _unit(a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1]), torch.zeros_like(z))
+    t = a[2] / torch.where(crosses, a[2] - b[2], torch.ones_like(a[2])) * crosses
+    h = _unit(a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1]), torch.zeros_like(a[2]))
     start = tuple(torch.where(above_a, p, q) for p, q in zip(a, h, strict=True))
     end = tuple(torch.where(above_b, p, q) for p, q in zip(b, h, strict=True))
-    edges = torch.where(above_a | above_b, _edge_integral(start, end), 0.0).sum(dim)
+    edges = torch.where(above_a | above_b, _edge_integral(start, end), 0.0).sum(0)
     # a convex polygon crosses the horizon at most once each way: the masked sums pick
-    # the exit and entry points (both 0, and the horizon term 0, when it does not cross)
+    # the exit and entry points
     leaving, entering = above_a & ~above_b, ~above_a & above_b
-    exit_point = tuple((q * leaving).sum(dim) for q in h)
-    entry_point = tuple((q * entering).sum(dim) for q in h)
+    exit_point = tuple((q * leaving).sum(0) for q in h)
+    entry_point = tuple((q * entering).sum(0) for q in h)
     return (edges + _edge_integral(exit_point, entry_point)) * (0.5 / math.pi)
 
 
