@@ -718,7 +718,8 @@ def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
     # a third of the scenes light in small pixel chunks, each recomputed in backward (what
     # a large frame does; these frames are too small to be chunked otherwise)
     default_chunk = lighting.PIXEL_LIGHT_CHUNK
-    lighting.PIXEL_LIGHT_CHUNK = 16 if _chance(gen, 0.33) else default_chunk
+    chunk = 16 if _chance(gen, 0.33) else default_chunk
+    lighting.PIXEL_LIGHT_CHUNK = chunk
     try:
         out = renderer(scene, view, proj, lights, env, channels=channels)
     finally:
@@ -736,8 +737,12 @@ def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
         c["nograd_differs"] += int(not torch.allclose(again.image, out.image.detach(),
                                                       rtol=1e-3, atol=1e-5, equal_nan=True))
     if out.plan.packed and _chance(gen, 0.5):  # packed surface = the frames' (requested),
-        framed = renderer(scene, view, proj, lights, env,  # bit for bit
-                          channels=ONE_FRAME_CHANNELS).image.detach()
+        lighting.PIXEL_LIGHT_CHUNK = chunk  # bit for bit, in the same pixel chunks (area
+        try:  # lights' atan2 rounds 1 ulp apart in vectorised loops and their remainders)
+            framed = renderer(scene, view, proj, lights, env,
+                              channels=ONE_FRAME_CHANNELS).image.detach()
+        finally:
+            lighting.PIXEL_LIGHT_CHUNK = default_chunk
         c["packed_differs"] += int(not torch.allclose(framed, out.image.detach(), rtol=0,
                                                       atol=0, equal_nan=True))
         c["packed"] += 1
