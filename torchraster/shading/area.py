@@ -44,7 +44,16 @@ _RECT = ((-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0))
 def polygon_corners(lights: AreaLights, item: int | None = None) -> torch.Tensor:
     """``(L, K, 3)`` world vertices of batch item ``item``'s lights (None: ``(B, L, K, 3)``
     of every item), counter-clockwise about ``u x v`` (K = 4 for rectangles only, else
-    :data:`DISC_SIDES`; a rectangle then repeats its corners)."""
+    :data:`DISC_SIDES`; a rectangle then repeats its corners).
+
+    Example:
+        >>> one = torch.ones(1, 1)
+        >>> panel = AreaLights(position=torch.zeros(1, 1, 3), u=torch.tensor([[[1.0, 0, 0]]]),
+        ...                    v=torch.tensor([[[0.0, 1, 0]]]), color=one[..., None].expand(
+        ...                        1, 1, 3), intensity=one)
+        >>> polygon_corners(panel, 0)[0].tolist()  # counter-clockwise about +z
+        [[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]]
+    """
     fields = (lights.position, lights.u, lights.v, lights.disc)
     c, u, v, disc = fields if item is None else (t[item] for t in fields)
     dt, dev = c.dtype, c.device
@@ -142,6 +151,18 @@ def area_lights(
 
     Returns:
         ``(3, M)`` outgoing radiance.
+
+    Example:
+        >>> one = torch.ones(1, 1)
+        >>> panel = AreaLights(position=torch.tensor([[[0.0, 0, 1]]]),  # 2 x 2 m, 1 m up,
+        ...                    u=torch.tensor([[[1.0, 0, 0]]]),  # facing down (u x v = -z)
+        ...                    v=torch.tensor([[[0.0, -1, 0]]]), color=one[..., None].expand(
+        ...                        1, 1, 3), intensity=one)
+        >>> z = torch.tensor([[0.0], [0], [1]])
+        >>> rad = area_lights(panel, 0, 0 * z, z, z, torch.ones(3, 1), torch.zeros(1, 1),
+        ...                   torch.ones(1, 1), multiscatter=False)
+        >>> round(rad[0, 0].item(), 3)  # Lambert: form factor 0.554, plus a little specular
+        0.56
     """
     corners = polygon_corners(lights, item)  # (L, K, 3)
     n_v = (normal * view).sum(0)  # (M,)
