@@ -28,8 +28,8 @@ zero-area triangle), rendered forward and backward through ``tr.Renderer``:
   plane, from below or of length 1e-15, point and spot lights exactly on a vertex, inside
   the sphere or 1e6 away, ranges 1e-6 to inf, cones of zero width or pi/2; in half of the
   scenes 1-3 area lights (rectangles and discs, one- or two-sided, half-extents 1e-6 to
-  1e3 m, at the same hostile places, casting PCSS shadows or not, in fog too; dropped where
-  shading is not pbr, which refuses them);
+  1e3 m, at the same hostile places, casting PCSS shadows or not, in fog too, under every
+  shading model);
 - environment: hostile environment maps (1 to 32 rows; zero, denormal, a single 1e6 texel),
   intensities 0 to 1e6, both diffuse methods, shown as background or not;
 - grazing: all of the above at random, cameras edge-on to the plane (elevation 0 or 1e-4
@@ -704,8 +704,6 @@ def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
     textures = tr.TextureSettings(
         filter=_pick(gen, ("trilinear", "bilinear", "nearest", "anisotropic")))
     multiscatter = _chance(gen, 0.8)
-    if shading != "pbr":  # area lights are shaded by pbr only
-        lights = dataclasses.replace(lights, area=None)
     renderer = tr.Renderer(
         res, shading=tr.ShadingSettings(shading, multiscatter=multiscatter or shading != "pbr"),
         raster=raster, textures=textures, ssao=ssao, ssr=ssr, fog=fog, dissolve=dissolve,

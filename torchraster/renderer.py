@@ -571,11 +571,6 @@ class Renderer(nn.Module):
         if self.raster_settings.edge_supersample > 1 and alpha != "none":
             raise NotImplementedError(f"edge_supersample: not implemented with glTF "
                                       f"{alpha.upper()} materials yet; use supersample instead")
-        if shading in LIT_MODELS and lights is not None and lights.area is not None and (
-                lights.area.count > 0):
-            if LIT_MODELS[shading] != "cook_torrance":
-                raise NotImplementedError(f"lights.area: area lights are shaded by the pbr "
-                                          f"model only, not by shading={shading!r}")
         ssr = self._plan_ssr(scene, shading, alpha)
         if ssr and environment is not None and environment.sun_threshold is not None:
             raise NotImplementedError(

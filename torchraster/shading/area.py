@@ -41,6 +41,11 @@ DISC_SIDES: int = 16
 _RECT = ((-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0))
 
 
+def polygon_sides(lights: AreaLights) -> int:
+    """K, the vertex count of the polygons :func:`polygon_corners` makes of ``lights``."""
+    return DISC_SIDES if bool(lights.disc.any()) else 4
+
+
 def polygon_corners(lights: AreaLights, item: int | None = None) -> torch.Tensor:
     """``(L, K, 3)`` world vertices of batch item ``item``'s lights (None: ``(B, L, K, 3)``
     of every item), counter-clockwise about ``u x v`` (K = 4 for rectangles only, else

@@ -39,7 +39,7 @@ from torchraster.numerics import (
     specular_f0,
     to_compute,
 )
-from torchraster.shading.area import area_lights
+from torchraster.shading.area import area_incidence, area_lights, polygon_sides
 from torchraster.shading.brdf import (
     MIN_COS,
     MIN_ROUGHNESS,
@@ -141,6 +141,9 @@ def _direct(
         l, e = directional_incidence(lights)  # type: ignore[arg-type]
     elif kind is PointLights:
         l, e = point_incidence(lights, position)  # type: ignore[arg-type]
+    elif kind is AreaLights:  # its vector irradiance L |Phi| along Phi: exact for Lambert
+        l, e, spread = area_incidence(lights, position)  # while the light is above the
+        e = e * spread  # horizon (fluence L Omega times |Phi| / Omega)
     else:
         l, e = spot_incidence(lights, position)  # type: ignore[arg-type]
     out = model(n, v, l, surface)
@@ -613,10 +616,6 @@ def shade(
     # The fused Cook-Torrance pass works on the covered pixels only, packed once per frame;
     # the full-frame tensors are built only for other models, ambient light and IBL.
     fused = shading_model is _cook_torrance_model
-    if not fused and lights.area is not None and lights.area.count > 0:
-        raise NotImplementedError(
-            f"lights.area: area lights are shaded by the Cook-Torrance model only, not by "
-            f"model={model if isinstance(model, str) else type(model).__name__!r}")
     full_frame = (kinds and not fused) or lights.ambient is not None or ibl is not None
     if full_frame and store is not None:  # frames of the packed channels
         position, normal, albedo, metallic, roughness = (
@@ -689,7 +688,9 @@ def shade(
     for kind, part in kinds:
         name = {DirectionalLights: "directional", PointLights: "point", SpotLights: "spot",
                 AreaLights: "area"}[kind]
-        slices = _chunks(part.count, per_chunk)
+        # the other models' area lights hold (B, L, K, 3, H, W) polygons: K times fewer
+        slices = _chunks(part.count, per_chunk if fused or kind is not AreaLights
+                         else max(1, per_chunk // polygon_sides(part)))
         use_ckpt = checkpoint_chunks
         if use_ckpt is None:
             if fused:  # recompute pixel chunks in backward when there are several: the
