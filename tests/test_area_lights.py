@@ -89,9 +89,10 @@ def test_diffuse_is_the_exact_form_factor(disc: bool) -> None:
     assert float(err.max()) < (2e-4 if not disc else 2e-3), float(err.max())
 
 
-#: Measured worst mean relative error of the specular (metal, albedo 1) against the
-#: reference over the receivers of :func:`_receivers` (docs/benchmarks.md, section area).
-SPECULAR_BOUND = {1.0: 0.05, 0.6: 0.08, 0.35: 0.12}
+#: Bounds of the mean relative error of the specular (metal, albedo 1) against the
+#: reference over the receivers of :func:`_receivers`: measured 0.044-0.045, 0.053-0.055,
+#: 0.062-0.069 (rectangle - disc), the LTC's error (docs/benchmarks.md, section ltc).
+SPECULAR_BOUND = {1.0: 0.05, 0.6: 0.065, 0.35: 0.08}
 
 
 @pytest.mark.parametrize("roughness", sorted(SPECULAR_BOUND))
@@ -276,7 +277,7 @@ def test_renderer_soft_shadows_against_ray_traced_reference() -> None:
     shadowed = (ref[:, 0] < 0.97 * unshadowed[:, 0])
     assert int(shadowed.sum()) > 30  # the test sees a shadow
     err = float((ours - ref).abs().sum() / ref.abs().sum())
-    assert err < 0.05, err
+    assert err < 0.04, err  # measured 0.031 (unfiltered visibility fails it)
 
 
 def test_yaml_area_lights_render(tmp_path) -> None:

@@ -277,7 +277,7 @@ def lights_from_config(
         t = torch.tensor(rows, device=device, dtype=dtype).reshape(1, len(rows), *shape_tail)
         return t.expand(batch, *t.shape[1:]).contiguous()
 
-    def shadows(rows: list) -> torch.Tensor:
+    def flags(rows: list) -> torch.Tensor:
         t = torch.tensor(rows, device=device, dtype=torch.bool).reshape(1, -1)
         return t.expand(batch, -1).contiguous()
 
@@ -305,7 +305,7 @@ def lights_from_config(
             direction=tensor([c.direction for c in d], (3,)),
             color=tensor([c.color for c in d], (3,)),
             intensity=tensor([c.intensity for c in d]),
-            cast_shadows=shadows([_casts(c) for c in d]),
+            cast_shadows=flags([_casts(c) for c in d]),
             shadow=tuple(_shadow_settings(c) for c in d),
         )
     if p := by_type["point"]:
@@ -314,7 +314,7 @@ def lights_from_config(
             color=tensor([c.color for c in p], (3,)),
             intensity=tensor([c.intensity for c in p]),
             range=tensor([inf_if_none(c.range) for c in p]),
-            cast_shadows=shadows([_casts(c) for c in p]),
+            cast_shadows=flags([_casts(c) for c in p]),
             shadow=tuple(_shadow_settings(c) for c in p),
         )
     if s := by_type["spot"]:
@@ -326,40 +326,31 @@ def lights_from_config(
             range=tensor([inf_if_none(c.range) for c in s]),
             inner_cone_angle=tensor([c.inner_cone_angle for c in s]),
             outer_cone_angle=tensor([c.outer_cone_angle for c in s]),
-            cast_shadows=shadows([_casts(c) for c in s]),
+            cast_shadows=flags([_casts(c) for c in s]),
             shadow=tuple(_shadow_settings(c) for c in s),
         )
     area = None
     if a := by_type["area"]:
-        f64 = torch.float64
-        sizes = [c.size or [1.0, 1.0] if c.shape == "rect" else [2 * (c.radius or 0.5)] * 2
-                 for c in a]
-        ups = [c.up for c in a]
-        u, v = area_light_axes(torch.tensor([c.direction for c in a], dtype=f64),
-                               torch.tensor([s[0] for s in sizes], dtype=f64),
-                               torch.tensor([s[1] for s in sizes], dtype=f64),
-                               None if all(x is None for x in ups) else torch.tensor(
-                                   [x or _default_up(c.direction) for x, c in zip(
-                                       ups, a, strict=True)], dtype=f64))
+        axes = []
+        for c in a:  # u and v of each light (its own up, or the default)
+            w, h = c.size or (1.0, 1.0) if c.shape == "rect" else (2 * (c.radius or 0.5),) * 2
+            f64 = {"dtype": torch.float64}
+            axes.append(torch.stack(area_light_axes(
+                torch.tensor(c.direction, **f64), torch.tensor(w, **f64),
+                torch.tensor(h, **f64), None if c.up is None else torch.tensor(c.up, **f64))))
+        u, v = torch.stack(axes).unbind(1)
         area = AreaLights(
             position=tensor([c.position for c in a], (3,)),
             u=tensor(u.tolist(), (3,)),
             v=tensor(v.tolist(), (3,)),
             color=tensor([c.color for c in a], (3,)),
             intensity=tensor([c.intensity for c in a]),
-            disc=shadows([c.shape == "disc" for c in a]),
-            two_sided=shadows([c.two_sided for c in a]),
-            cast_shadows=shadows([_casts(c) for c in a]),
+            disc=flags([c.shape == "disc" for c in a]),
+            two_sided=flags([c.two_sided for c in a]),
+            cast_shadows=flags([_casts(c) for c in a]),
             shadow=tuple(_shadow_settings(c) for c in a),
         )
     return Lights(ambient=ambient, directional=directional, point=point, spot=spot, area=area)
-
-
-def _default_up(direction: list[float]) -> list[float]:
-    """:func:`~torchraster.shading.lights.area_light_axes`'s default up of a light facing
-    ``direction``: +Y, or +Z for a light facing along Y."""
-    norm = math.sqrt(sum(x * x for x in direction))
-    return [0.0, 0.0, 1.0] if abs(direction[1]) / norm > 0.999 else [0.0, 1.0, 0.0]
 
 
 def build_camera(cam: CameraConfig, positions: torch.Tensor, resolution: tuple[int, int],
