@@ -79,6 +79,8 @@ def main() -> None:
     ap.add_argument("--section", default=None,
                     help="write the table to this docs/benchmarks.md section")
     ap.add_argument("--note", default="", help="text under the table (what changed)")
+    ap.add_argument("--title", default="Shadow lookups: before / after",
+                    help="the section's heading")
     args = ap.parse_args()
     torch.set_num_threads(1)
     before = load_renamed(args.before, "torchraster_before")
@@ -113,7 +115,7 @@ def main() -> None:
     print(table)
     if args.section:
         method = " ".join(__doc__.split("\n\n")[1].split())
-        update_section(args.section, f"## Shadow lookups: before / after\n\n{method}\n\n"
+        update_section(args.section, f"## {args.title}\n\n{method}\n\n"
                        f"{table}\n\n{args.note}")
 
 

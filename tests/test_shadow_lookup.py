@@ -156,3 +156,16 @@ def test_lights_looked_up_in_slices_that_fit_the_padding_bound(filt, monkeypatch
     assert shadows._light_slices(g) == [slice(0, 1), slice(1, 2)]  # unpadded, by light
     torch.testing.assert_close(shadow_visibility(g, p, n, recv, view), once, atol=0.02,
                                rtol=0)
+
+
+@pytest.mark.parametrize("kind", ["point", "directional", "spot"])
+@pytest.mark.parametrize("filt", ["hard", "pcf", "pcss", "vsm"])
+def test_receiver_chunks_give_the_same_bits(kind, filt, monkeypatch):
+    # receivers are looked up in chunks of TAP_CHUNK_ELEMENTS receiver-light-tap corners
+    # (cache-sized); chunks of 1 to 7 receivers, straddling nothing, give the same bits
+    g, p, n, recv, view = _setup(kind, filt)
+    whole = shadow_visibility(g, p, n, recv, view)
+    taps = {"hard": 1, "vsm": 1, "pcf": 8, "pcss": 16}[filt]
+    for receivers in (1, 7):
+        monkeypatch.setattr(shadows, "TAP_CHUNK_ELEMENTS", receivers * 2 * taps * 4)
+        assert torch.equal(shadow_visibility(g, p, n, recv, view), whole)

@@ -100,8 +100,11 @@ SHADOW_MEMORY_BUDGET: int = 256 * 2**20
 #: into the group's maps (over :data:`DIRECT_MAP_TEXELS`; other maps use rasterize_depth's
 #: 96 MB, whose fewer, larger chunks are faster with many views per call).
 DIRECT_RASTER_BUDGET: int = 32 * 2**20
-#: Pixel-taps evaluated at once by the filters (bounds the temporaries of one chunk).
-TAP_CHUNK_ELEMENTS: int = 2**22
+#: Receiver-light-tap corners evaluated at once by the filters: bounds the temporaries of
+#: one chunk (in float32 4 MB for the four texels of every tap, 1 MB for the others), which
+#: then stay in the CPU's caches. 2**22 made lookups 1.2-1.9x slower (docs/benchmarks.md,
+#: section shadow-tap-chunks); 2**18 was slower again with many lights (smaller chunks).
+TAP_CHUNK_ELEMENTS: int = 2**20
 
 #: With autograd, lookups of more receiver-light taps than this recompute their receiver
 #: chunks in backward (checkpoints) instead of keeping every tap's temporaries (~200 B a
