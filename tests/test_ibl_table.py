@@ -203,6 +203,35 @@ def test_shade_ibl_table_mask_batch_and_rotation() -> None:
     torch.testing.assert_close(whole, ref, rtol=1e-4, atol=1e-5)
 
 
+@pytest.mark.parametrize("mode", ["split_sum", "fitted", "table"])
+def test_pixel_chunks_give_the_same_values(mode: str, monkeypatch) -> None:
+    # a masked shade_ibl shades its pixels in chunks of IBL_PIXEL_CHUNK (cache-sized; the
+    # table mode nests a second packing below roughness 0.3): chunks of 7 pixels, a whole
+    # covered frame included, give the values and gradients of one piece (up to the last
+    # bit of vectorised against scalar transcendental functions: a chunk's tail runs the
+    # scalar loop)
+    from torchraster.shading import ibl
+
+    env = Environment(_smooth_env(32, 64), specular=mode, table_levels=3,
+                      table_views=4, table_azimuths=6, sun_threshold=3.0)
+    g = torch.Generator().manual_seed(8)
+
+    def rand(c: int, normal: bool = False) -> torch.Tensor:
+        return (torch.randn if normal else torch.rand)(2, c, 6, 7, generator=g, dtype=D64)
+
+    n = F.normalize(rand(3, True), dim=1)
+    v = F.normalize(n + rand(3, True), dim=1)
+    alb, met, ao, rough = rand(3), rand(1), rand(1), rand(1).requires_grad_(True)
+    for mask in ((rand(1) > 0.3).to(D64), torch.ones(2, 1, 6, 7, dtype=D64)):
+        outs = []
+        for chunk in (ibl.IBL_PIXEL_CHUNK, 7):
+            monkeypatch.setattr(ibl, "IBL_PIXEL_CHUNK", chunk)
+            out = shade_ibl(n, v, alb, met, rough, ao, env, mask=mask)
+            outs.append((out, *torch.autograd.grad(out.square().sum(), rough)))
+        for a, b in zip(*outs, strict=True):
+            torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-13)
+
+
 def test_poles_and_normal_incidence_are_finite() -> None:
     env = Environment(_smooth_env(32, 64), table_levels=2, table_views=3, table_azimuths=4)
     up = torch.tensor([0.0, 1.0, 0.0], dtype=D64)

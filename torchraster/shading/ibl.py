@@ -113,6 +113,7 @@ __all__ = [
     "lookup_dfg",
     "specular_importance",
     "latlong_atlas",
+    "IBL_PIXEL_CHUNK",
     "IMPORTANCE_CHUNK",
     "dominant_direction",
     "lobe_table",
@@ -1517,7 +1518,9 @@ def _on_pixels(select: torch.Tensor, fn, *images: torch.Tensor | None  # noqa: A
     if count == 0:
         return None
     if count == h * w and bool(chosen.all()):
-        return fn(*images)
+        strips = (None if t is None else t.reshape(b, t.shape[1], 1, h * w) for t in images)
+        out = _in_chunks(fn, *strips)
+        return out.view(b, out.shape[1], h, w)
     if b == 1:
         idx = chosen[0].nonzero().reshape(1, -1)
     else:  # selected pixels first in each row, in pixel order
@@ -1531,11 +1534,30 @@ def _on_pixels(select: torch.Tensor, fn, *images: torch.Tensor | None  # noqa: A
         t = torch.gather(t.reshape(b, c, h * w), 2, idx[:, None].expand(b, c, count))
         return torch.where(keep, t.view(b, c, 1, count), 0.0)  # spare slots: zeros
 
-    out = torch.where(keep, fn(*(pack(t) for t in images)), 0.0)
+    out = torch.where(keep, _in_chunks(fn, *(pack(t) for t in images)), 0.0)
     c = out.shape[1]
     full = out.new_zeros(b, c, h * w)
     return full.scatter(2, idx[:, None].expand(b, c, count), out.view(b, c, count)
                         ).view(b, c, h, w)
+
+
+#: Pixels shaded at once by :func:`_on_pixels` (a masked :func:`shade_ibl`): the pass's
+#: ~40 per-pixel temporaries then stay in the CPU's caches. 2**20 pixels, one thread:
+#: split sum 1.3x and table 1.8x faster than in one piece; 2**14 was slower again
+#: (launches). Whole frames: docs/benchmarks.md, section frame-chunks.
+IBL_PIXEL_CHUNK: int = 2**17
+
+
+def _in_chunks(fn, *strips: torch.Tensor | None) -> torch.Tensor:  # noqa: ANN001
+    """``fn(*strips)`` of ``(B, C, 1, M)`` pixel strips, evaluated on at most
+    :data:`IBL_PIXEL_CHUNK` pixels (B x a slice of M) at a time (``fn`` is per pixel: the
+    same values)."""
+    b, m = next(t.shape for t in strips if t is not None)[::3]
+    step = max(1, IBL_PIXEL_CHUNK // b)
+    if m <= step:
+        return fn(*strips)
+    return torch.cat([fn(*(None if t is None else t[..., k:k + step] for t in strips))
+                      for k in range(0, m, step)], -1)
 
 
 def _shade_covered(mask: torch.Tensor, *maps: torch.Tensor | Environment | None, **kw
