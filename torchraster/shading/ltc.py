@@ -28,10 +28,12 @@ holds entry k of ``(a, b, c, d)`` of the inverse matrix
             [d, 0, 1]]
 
 (normalised so that its bottom-right entry is 1; an LTC does not change when M is
-scaled); row i is perceptual roughness ``r = i / (R - 1)`` (rows below MIN_ROUGHNESS hold
-the MIN_ROUGHNESS fit), column j is ``u = j / (C - 1)`` with ``n.v = 1 - u^2`` (Heitz's
-``sqrt(1 - cos theta_v)`` axis: denser towards grazing angles). Nodes at both ends; looked
-up bilinearly.
+scaled); row i is perceptual roughness ``r = (s0 + (1 - s0) i / (R - 1))^2`` with
+``s0 = sqrt(MIN_ROUGHNESS)`` (:func:`table_roughness`: uniform in sqrt(r), from
+MIN_ROUGHNESS to 1: rows 0.011 apart at MIN_ROUGHNESS, ~3x denser than uniform steps of
+r, between which a narrow lobe moved by more than its width), column j is
+``u = j / (C - 1)`` with ``n.v = 1 - u^2`` (Heitz's ``sqrt(1 - cos theta_v)`` axis: denser
+towards grazing angles). Nodes at both ends; looked up bilinearly.
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ import numpy as np
 import torch
 
 from torchraster.numerics import compute_dtype, finish_low_precision
+from torchraster.shading.brdf import MIN_ROUGHNESS
 
 #: The fitted table; written by ``scripts/fit_ltc.py``.
 TABLE_PATH: Path = Path(__file__).resolve().parent.parent / "assets" / "ltc" / "ggx_ltc.npy"
@@ -53,6 +56,26 @@ TABLE_PATH: Path = Path(__file__).resolve().parent.parent / "assets" / "ltc" / "
 #: gradient with respect to n.v stays finite (at most ``0.5 / sqrt(SQRT_LINEAR)`` per unit
 #: of u) at normal incidence; u moves by at most ``sqrt(SQRT_LINEAR) / 4`` (0.8 % of a cell).
 SQRT_LINEAR: float = 1e-6
+
+
+def table_roughness(rows: int, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """Perceptual roughness of the table's rows ``(rows,)``: uniform in sqrt(r) from
+    MIN_ROUGHNESS to 1 (the inverse of :func:`roughness_rows`).
+
+    Example:
+        >>> [round(r, 4) for r in table_roughness(4).tolist()]
+        [0.045, 0.2254, 0.5437, 1.0]
+    """
+    s0 = math.sqrt(MIN_ROUGHNESS)
+    return (s0 + (1.0 - s0) * torch.linspace(0.0, 1.0, rows, dtype=dtype)) ** 2
+
+
+def roughness_rows(roughness: torch.Tensor, rows: int) -> torch.Tensor:
+    """Fractional row ``(...)`` of perceptual roughness ``roughness`` ``(...)`` (clamped to
+    [MIN_ROUGHNESS, 1]) in a table of ``rows`` rows (:func:`table_roughness`)."""
+    s0 = math.sqrt(MIN_ROUGHNESS)
+    s = roughness.clamp(MIN_ROUGHNESS, 1.0).sqrt()
+    return (s - s0) * ((rows - 1) / (1.0 - s0))
 
 
 @functools.cache
@@ -86,8 +109,8 @@ def ltc_coefficients(roughness: torch.Tensor, n_dot_v: torch.Tensor) -> torch.Te
     in the table, differentiable with respect to both inputs.
 
     Args:
-        roughness: perceptual roughness, clamped to [0, 1] (below MIN_ROUGHNESS the table
-            holds the MIN_ROUGHNESS fit), any shape broadcastable with ``n_dot_v``.
+        roughness: perceptual roughness, clamped to [MIN_ROUGHNESS, 1] (the shading's
+            own clamp), any shape broadcastable with ``n_dot_v``.
         n_dot_v: cosine of the view angle, clamped to [0, 1].
 
     Returns:
@@ -98,7 +121,7 @@ def ltc_coefficients(roughness: torch.Tensor, n_dot_v: torch.Tensor) -> torch.Te
     r, nv = torch.broadcast_tensors(roughness.to(dt), n_dot_v.to(dt))
     table = ltc_table(r.device, dt)
     rows, cols = table.shape[1:]
-    x = r.clamp(0.0, 1.0) * (rows - 1)
+    x = roughness_rows(r, rows)
     s = 1.0 - nv.clamp(0.0, 1.0)
     big = s > SQRT_LINEAR
     u = torch.where(big, torch.sqrt(torch.where(big, s, 1.0)), s / math.sqrt(SQRT_LINEAR))
