@@ -9,10 +9,11 @@ difference).
     git archive HEAD torchraster | tar -x -C /tmp/before    # the code to compare against
     python scripts/ab_frame.py /tmp/before --turns 7
 
-Rows ("--rows"): "<res> <batch> <what>" with what one of ``plain`` (one point light),
-``env`` (one point light and an environment, the default lobe-table specular), ``shadow``
-(one point light casting a 1024² cube map), ``env+shadow``, ``shadow4`` (four shadowed
-point lights). Frame: Spot (5856 faces, its 1024² texture) from orbit views, as
+Rows ("--rows"): "<res> <batch> <what>" with what ``plain`` (one point light) or
+``+``-joined tokens: ``env`` (an environment, the default lobe-table specular), ``shadow``
+(the point lights cast 1024² cube maps), ``4`` (four point lights instead of one), or a
+shading model other than pbr (``blinn_phong``, ``half_lambert``, ``toon``); ``shadow4`` is
+``shadow+4``. Frame: Spot (5856 faces, its 1024² texture) from orbit views, as
 ``bench_memory.py``.
 """
 
@@ -46,16 +47,18 @@ def _inputs(module, res: int, batch: int, what: str):
     scene = module.RenderScene.from_mesh(mesh)
     view = module.camera.orbit(torch.arange(batch) * (360.0 / 8), 15.0, 2.2)
     proj = module.camera.perspective(45.0, 1.0, 0.1)
-    n = 4 if what == "shadow4" else 1
+    tokens = set(what.replace("shadow4", "shadow+4").split("+"))
+    n = 4 if "4" in tokens else 1
     ang = torch.arange(n) * (2 * math.pi / n)
     pos = torch.stack([2.0 * torch.cos(ang), 2.0 + 0 * ang, 3.0 * torch.sin(ang) + 1.0], -1)
-    shadow = "shadow" in what
+    shadow = "shadow" in tokens
     settings = module.shading.shadows.ShadowSettings(map_size=1024) if shadow else None
     point = module.PointLights(position=pos[None], color=torch.ones(1, n, 3),
                                intensity=torch.full((1, n), 20.0 / n),
                                cast_shadows=torch.full((1, n), shadow), shadow=settings)
-    env = module.Environment(_sky()) if "env" in what else None
-    renderer = module.Renderer(res)
+    env = module.Environment(_sky()) if "env" in tokens else None
+    models = tokens & {"blinn_phong", "half_lambert", "toon"}
+    renderer = module.Renderer(res, shading=models.pop() if models else "pbr")
     renderer.shadow_cache = None  # every frame draws its maps (moving lights or scene)
     return renderer, (scene, view, proj, module.Lights(point=point), env)
 

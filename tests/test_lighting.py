@@ -363,6 +363,38 @@ def test_chunking_and_checkpoint_agree() -> None:
         torch.testing.assert_close(gr, grads[0], rtol=1e-10, atol=1e-13)
 
 
+@pytest.mark.parametrize("model", ["blinn_phong", "half_lambert", "toon", "lambert"])
+def test_other_models_in_row_bands_equal_whole_frames(model: str, monkeypatch) -> None:
+    """The models other than the fused Cook-Torrance run over bands of image rows of about
+    MODEL_BAND_ELEMENTS pixel-lights (cache-sized); bands of one row, with shadows (a
+    visibility hook), an area light and a batch of 2, give the whole frame's values and
+    gradients."""
+    from torchraster.shading import lighting
+
+    pos, n, mask = sphere(9, 7, b=2)
+    g = torch.Generator().manual_seed(5)
+    lights = lights_from_config(LIGHTS + [{"type": "area", "position": [0.5, 1.5, 2.0],
+                                           "direction": [0.0, -0.6, -1.0], "size": [1.0, 0.5],
+                                           "intensity": 3.0}], dtype=F64)
+    shadow = {kind: torch.rand(2, 4, 1, 9, 7, generator=g, dtype=F64)
+              for kind in ("directional", "point", "spot", "area")}
+    rough = torch.rand(2, 1, 9, 7, generator=g, dtype=F64)
+    outs = []
+    for band in (lighting.MODEL_BAND_ELEMENTS, 1):
+        monkeypatch.setattr(lighting, "MODEL_BAND_ELEMENTS", band)
+        albedo = torch.rand(2, 3, 9, 7, generator=torch.Generator().manual_seed(8),
+                            dtype=F64).requires_grad_()
+        out = shade(GBuffer(position=pos, normal=n, albedo=albedo, metallic=rough * 0.5,
+                            roughness=rough, mask=mask),
+                    camera_position=cam(2), lights=lights,
+                    model=lambert if model == "lambert" else model,
+                    visibility=lambda kind, sl: shadow[kind][:, sl])
+        outs.append((out, *torch.autograd.grad(out.square().sum(), albedo)))
+    assert float(outs[0][1].abs().max()) > 0
+    for a, b in zip(*outs, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-14)
+
+
 @pytest.mark.parametrize("model", sorted(MODELS))
 def test_models_by_name_finite(model: str) -> None:
     pos, n, mask = sphere(16, 16, dtype=torch.float32)

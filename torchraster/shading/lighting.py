@@ -80,6 +80,11 @@ PIXEL_LIGHT_CHUNK: int = 2**16
 #: lights at 512² x 8 hold the same with 1 or 8, docs/benchmarks.md, memory).
 GRAD_CHUNK_FACTOR: int = 8
 
+#: Pixel-lights of one band of image rows of the other shading models (:func:`_direct`):
+#: their per-light RGB temporaries then stay in the CPU's caches instead of spanning whole
+#: frames (docs/benchmarks.md, section model-bands).
+MODEL_BAND_ELEMENTS: int = 2**17
+
 #: The fused pass evaluates the BRDF only at the pixel-lights a light reaches (n.l > 0,
 #: inside its range and cone, visible) when fewer than this fraction of them are reached;
 #: above it, evaluating all of them is cheaper than gathering the reached ones.
@@ -136,7 +141,29 @@ def _direct(
     """Sum over this chunk of lights of ``model(n, v, l) * E * visibility``: ``(B, 3, H, W)``.
 
     ``visibility``: ``(B, L_chunk, 1, H, W)`` light visibility (shadows) or None (= 1).
+    Evaluated over bands of image rows of about :data:`MODEL_BAND_ELEMENTS` pixel-lights
+    (the model sees ``(B, L, C, rows, W)`` tensors: it is per pixel).
     """
+    b, h, w = n.shape[0], n.shape[-2], n.shape[-1]
+    rows = max(1, MODEL_BAND_ELEMENTS // max(1, b * lights.count * w))
+    if rows < h:
+        def band(t: torch.Tensor, r0: int) -> torch.Tensor:
+            return t[..., r0:r0 + rows, :]
+
+        return torch.cat([_direct_rows(
+            model, kind, lights, band(position, r0), band(n, r0), band(v, r0),
+            Surface(*(band(t, r0) for t in (surface.albedo, surface.metallic,
+                                             surface.roughness))),
+            None if visibility is None else band(visibility, r0)) for r0 in range(0, h, rows)],
+            dim=-2)
+    return _direct_rows(model, kind, lights, position, n, v, surface, visibility)
+
+
+def _direct_rows(model: ShadingModel, kind: type,
+                 lights: DirectionalLights | PointLights | SpotLights | AreaLights,
+                 position: torch.Tensor, n: torch.Tensor, v: torch.Tensor, surface: Surface,
+                 visibility: torch.Tensor | None) -> torch.Tensor:
+    """:func:`_direct` of one band of rows (the whole frame or part of it)."""
     if kind is DirectionalLights:
         l, e = directional_incidence(lights)  # type: ignore[arg-type]
     elif kind is PointLights:
