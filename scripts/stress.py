@@ -39,8 +39,10 @@ zero-area triangle), rendered forward and backward through ``tr.Renderer``:
   or dissolve). Half of their scenes ask for every channel of the frame, half for some
   label channels only, so the surface channels only the lighting reads stay packed
   (``plan.packed``); half of those are rendered again with every channel and must give
-  the same image bit for bit ("packed surface differs"). A third light in pixel chunks of
-  16 pixel-lights x 8, each recomputed in backward (the path of large frames).
+  the same image bit for bit ("packed surface differs"). A third run in small chunks (the
+  paths of large frames): lighting in pixel chunks of 16 pixel-lights x 8, each recomputed
+  in backward, the other shading models in bands of one row, shadow lookups in chunks of
+  512 receiver-light-tap corners, image-based lighting in chunks of 16 pixels.
 - labels: the label channels (instance, semantic, object_coords, distance, amodal, face_id)
   of the same stage as three objects, in float32, float64, float16 or bfloat16, supersampled
   1x to 3x, batch 1-2 (with face_ranges dropping an object), sometimes a MASK cut-out; the
@@ -95,6 +97,7 @@ spot, and their difference.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import importlib
 import math
@@ -115,7 +118,7 @@ from torchraster.motion import OtherFrame
 from torchraster.numerics import to_compute
 from torchraster.raster import rasterize_coverage
 from torchraster.renderer import _clip_positions  # the renderer's own clip positions
-from torchraster.shading import lighting, shadows
+from torchraster.shading import ibl, lighting, shadows
 from torchraster.testing.reference_raster import (
     look_at_matrix,
     perspective_matrix,
@@ -643,6 +646,26 @@ SURFACE_CHANNELS = ("position", "normal", "albedo", "metallic", "roughness")
 ONE_FRAME_CHANNELS = tuple(ch for ch in tr.CHANNELS if not ch.startswith("flow")
                            and ch != "motion")
 
+#: Knobs of the chunked paths and their values in the "small chunks" scenes (a few pixels,
+#: receivers or rows each).
+SMALL_CHUNKS = ((lighting, "PIXEL_LIGHT_CHUNK", 16), (lighting, "MODEL_BAND_ELEMENTS", 16),
+                (shadows, "TAP_CHUNK_ELEMENTS", 512), (ibl, "IBL_PIXEL_CHUNK", 16))
+
+
+@contextlib.contextmanager
+def _small_chunks(on: bool):
+    """Within the block, the chunked paths run in :data:`SMALL_CHUNKS` when ``on``."""
+    saved = [getattr(mod, name) for mod, name, _ in SMALL_CHUNKS]
+    if on:
+        for mod, name, value in SMALL_CHUNKS:
+            setattr(mod, name, value)
+    try:
+        yield
+    finally:
+        for (mod, name, _), value in zip(SMALL_CHUNKS, saved, strict=True):
+            setattr(mod, name, value)
+
+
 def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
     """One hostile render forward and backward (see the module docstring for the kinds)."""
     if kind == "half":
@@ -713,15 +736,12 @@ def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
     # lighting reads stay packed (plan.packed) where the plan allows
     channels = ONE_FRAME_CHANNELS if _chance(gen, 0.5) else tuple(
         ch for ch in ONE_FRAME_CHANNELS if ch not in SURFACE_CHANNELS and _chance(gen, 0.5))
-    # a third of the scenes light in small pixel chunks, each recomputed in backward (what
-    # a large frame does; these frames are too small to be chunked otherwise)
-    default_chunk = lighting.PIXEL_LIGHT_CHUNK
-    chunk = 16 if _chance(gen, 0.33) else default_chunk
-    lighting.PIXEL_LIGHT_CHUNK = chunk
-    try:
+    # a third of the scenes light in small chunks (pixel chunks recomputed in backward, row
+    # bands of the other models, shadow-lookup and IBL chunks: what a large frame does;
+    # these frames are too small to be chunked otherwise)
+    small = _chance(gen, 0.33)
+    with _small_chunks(small):
         out = renderer(scene, view, proj, lights, env, channels=channels)
-    finally:
-        lighting.PIXEL_LIGHT_CHUNK = default_chunk
     c["covered"] += int((out.alpha > 0).sum())
     c["area_lit"] += int(any(kind == "area" for kind, _ in out.plan.lights))
     c["area_fog"] += int(any(s.startswith("fog march") and "area" in s for s in out.plan.steps))
@@ -735,12 +755,10 @@ def scene_renderer(gen: torch.Generator, kind: str, c: Counter) -> None:
         c["nograd_differs"] += int(not torch.allclose(again.image, out.image.detach(),
                                                       rtol=1e-3, atol=1e-5, equal_nan=True))
     if out.plan.packed and _chance(gen, 0.5):  # packed surface = the frames' (requested),
-        lighting.PIXEL_LIGHT_CHUNK = chunk  # bit for bit, in the same pixel chunks (area
-        try:  # lights' atan2 rounds 1 ulp apart in vectorised loops and their remainders)
+        with _small_chunks(small):  # bit for bit, in the same chunks (area lights' atan2
+            # rounds 1 ulp apart in vectorised loops and their remainders)
             framed = renderer(scene, view, proj, lights, env,
                               channels=ONE_FRAME_CHANNELS).image.detach()
-        finally:
-            lighting.PIXEL_LIGHT_CHUNK = default_chunk
         c["packed_differs"] += int(not torch.allclose(framed, out.image.detach(), rtol=0,
                                                       atol=0, equal_nan=True))
         c["packed"] += 1
