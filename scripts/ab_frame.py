@@ -11,7 +11,8 @@ difference).
 
 Rows ("--rows"): "<res> <batch> <what>" with what ``plain`` (one point light) or
 ``+``-joined tokens: ``env`` (an environment, the default lobe-table specular), ``shadow``
-(the point lights cast 1024² cube maps), ``4`` (four point lights instead of one), or a
+(the point lights cast 1024² cube maps), ``4`` (four point lights instead of one),
+``ssao`` (the default ``SSAO()``), ``fog`` (``Fog(density=0.2)``: 16 march steps), or a
 shading model other than pbr (``blinn_phong``, ``half_lambert``, ``toon``); ``shadow4`` is
 ``shadow+4``. Frame: Spot (5856 faces, its 1024² texture) from orbit views, as
 ``bench_memory.py``.
@@ -20,6 +21,7 @@ shading model other than pbr (``blinn_phong``, ``half_lambert``, ``toon``); ``sh
 from __future__ import annotations
 
 import argparse
+import importlib
 import math
 import statistics
 import time
@@ -58,7 +60,11 @@ def _inputs(module, res: int, batch: int, what: str):
                                cast_shadows=torch.full((1, n), shadow), shadow=settings)
     env = module.Environment(_sky()) if "env" in tokens else None
     models = tokens & {"blinn_phong", "half_lambert", "toon"}
-    renderer = module.Renderer(res, shading=models.pop() if models else "pbr")
+    post = importlib.import_module(module.__name__ + ".post")
+    volumetric = importlib.import_module(module.__name__ + ".shading.volumetric")
+    renderer = module.Renderer(res, shading=models.pop() if models else "pbr",
+                               ssao=post.SSAO() if "ssao" in tokens else None,
+                               fog=volumetric.Fog(density=0.2) if "fog" in tokens else None)
     renderer.shadow_cache = None  # every frame draws its maps (moving lights or scene)
     return renderer, (scene, view, proj, module.Lights(point=point), env)
 

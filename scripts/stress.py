@@ -41,8 +41,9 @@ zero-area triangle), rendered forward and backward through ``tr.Renderer``:
   (``plan.packed``); half of those are rendered again with every channel and must give
   the same image bit for bit ("packed surface differs"). A third run in small chunks (the
   paths of large frames): lighting in pixel chunks of 16 pixel-lights x 8, each recomputed
-  in backward, the other shading models in bands of one row, shadow lookups in chunks of
-  512 receiver-light-tap corners, image-based lighting in chunks of 16 pixels.
+  in backward, the other shading models, SSAO and the fog march in bands of one row,
+  shadow lookups in chunks of 512 receiver-light-tap corners, image-based lighting in chunks
+  of 16 pixels.
 - labels: the label channels (instance, semantic, object_coords, distance, amodal, face_id)
   of the same stage as three objects, in float32, float64, float16 or bfloat16, supersampled
   1x to 3x, batch 1-2 (with face_ranges dropping an object), sometimes a MASK cut-out; the
@@ -118,7 +119,7 @@ from torchraster.motion import OtherFrame
 from torchraster.numerics import to_compute
 from torchraster.raster import rasterize_coverage
 from torchraster.renderer import _clip_positions  # the renderer's own clip positions
-from torchraster.shading import ibl, lighting, shadows
+from torchraster.shading import ibl, lighting, shadows, volumetric
 from torchraster.testing.reference_raster import (
     look_at_matrix,
     perspective_matrix,
@@ -649,7 +650,9 @@ ONE_FRAME_CHANNELS = tuple(ch for ch in tr.CHANNELS if not ch.startswith("flow")
 #: Knobs of the chunked paths and their values in the "small chunks" scenes (a few pixels,
 #: receivers or rows each).
 SMALL_CHUNKS = ((lighting, "PIXEL_LIGHT_CHUNK", 16), (lighting, "MODEL_BAND_ELEMENTS", 16),
-                (shadows, "TAP_CHUNK_ELEMENTS", 512), (ibl, "IBL_PIXEL_CHUNK", 16))
+                (shadows, "TAP_CHUNK_ELEMENTS", 512), (ibl, "IBL_PIXEL_CHUNK", 16),
+                (importlib.import_module("torchraster.post.ssao"), "SSAO_BAND_ELEMENTS", 16),
+                (volumetric, "FOG_BAND_PIXELS", 16))
 
 
 @contextlib.contextmanager

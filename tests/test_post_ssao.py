@@ -106,3 +106,27 @@ def test_disabled_and_bad_args() -> None:
         SSAO()(d, torch.zeros(1, 3, 4, 5), intrinsics=torch.ones(4))
     with pytest.raises(ValueError, match="samples"):
         SSAO(samples=0)
+
+
+def test_row_bands_equal_the_whole_frame(monkeypatch) -> None:
+    # ssao evaluates its samples over bands of rows of SSAO_BAND_ELEMENTS pixel-samples
+    # (cache-sized; every sample still reads the whole depth image): bands of one row, a
+    # batch of 2 with per-item intrinsics and empty pixels, give the whole frame's AO and
+    # gradients (up to the last bit of vectorised against scalar loops)
+    import sys
+
+    mod = sys.modules["torchraster.post.ssao"]
+    g = torch.Generator().manual_seed(4)
+    depth = torch.rand(2, 1, 23, 19, generator=g, dtype=torch.float64) * 2 + 1
+    depth[:, :, :3] = float("inf")
+    k = torch.tensor([[40.0, 42.0, 9.0, 11.0], [35.0, 35.0, 9.5, 11.5]], dtype=torch.float64)
+    outs = []
+    for band in (mod.SSAO_BAND_ELEMENTS, 1):
+        monkeypatch.setattr(mod, "SSAO_BAND_ELEMENTS", band)
+        normals = torch.randn(2, 3, 23, 19, generator=torch.Generator().manual_seed(5),
+                              dtype=torch.float64).requires_grad_()
+        ao = SSAO(radius=0.3, samples=8)(depth, normals, intrinsics=k)
+        outs.append((ao, *torch.autograd.grad((ao * ao).sum(), normals)))
+    assert float(outs[0][0].detach().min()) < 0.9 and float(outs[0][1].abs().max()) > 0
+    for a, b in zip(*outs, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-14)

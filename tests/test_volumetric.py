@@ -720,3 +720,33 @@ def test_renderer_fog_in_half_precision(dtype):
         assert out.image.dtype == dtype and torch.isfinite(out.image).all()
         out.image.float().sum().backward()
         assert torch.isfinite(pos.grad).all() and torch.isfinite(sd.grad).all()
+
+
+def test_march_in_row_bands_equals_the_whole_frame(monkeypatch):
+    """fog_terms marches bands of FOG_BAND_PIXELS pixels (cache-sized; not with shadow
+    maps); bands of one row, with jitter (the pattern of each band's own rows), a sun, a
+    point light with the light path and a batch of 2, give the whole frame's values and
+    gradients."""
+    from torchraster.shading import volumetric
+
+    scene = _plate_with_hole()
+    view = torch.cat([tr.camera.look_at([0.0, 1.0, 3.5], [0.0, 1.3, 0.0]).reshape(1, 4, 4),
+                      tr.camera.look_at([0.5, 1.2, 3.0], [0.0, 1.0, 0.0]).reshape(1, 4, 4)])
+    view = view.double()
+    proj = tr.camera.perspective(50.0, 1.0, 0.1).double()
+    outs = []
+    for band in (volumetric.FOG_BAND_PIXELS, 1):
+        monkeypatch.setattr(volumetric, "FOG_BAND_PIXELS", band)
+        density = torch.tensor(0.3, dtype=F64, requires_grad=True)
+        sun = tr.DirectionalLights(direction=torch.tensor([[SUN_DIR]], dtype=F64),
+                                   color=torch.ones(1, 1, 3, dtype=F64),
+                                   intensity=torch.tensor([[2.0]], dtype=F64))
+        lights = tr.Lights(directional=sun, point=_bulb((0.3, 1.0, 0.5)))
+        fog = Fog(density=density, height_falloff=0.3, anisotropy=0.4, steps=5, blur=0.0)
+        out = tr.Renderer((9, 7), fog=fog)(scene, view, proj, lights)
+        outs.append((out.image, *torch.autograd.grad(out.image.square().sum(), density)))
+    assert float(outs[0][1].abs()) > 0
+    torch.testing.assert_close(outs[0][0], outs[1][0], rtol=1e-12, atol=1e-14)
+    # the density's gradient sums over every pixel, in another order per band (the plate
+    # is a float32 mesh: its G-buffer is float32)
+    torch.testing.assert_close(outs[0][1], outs[1][1], rtol=1e-6, atol=0)

@@ -115,14 +115,39 @@ def ssao(
     coordinates, row 0 at the top); ``radius``, ``bias``, ``softness`` in scene units.
     """
     b, _, h, w = depth.shape
-    dev, dt = depth.device, depth.dtype
     valid = torch.isfinite(depth) & (depth > 0)
     d = torch.where(valid, depth, torch.full_like(depth, FAR_DEPTH))
-    k = intrinsics.to(dt).reshape(-1, 4).expand(b, 4)
+    k = intrinsics.to(depth.dtype).reshape(-1, 4).expand(b, 4)
+    # bands of rows of about SSAO_BAND_ELEMENTS pixel-samples (each pixel's samples read
+    # the whole depth image; the blur below needs the whole AO image)
+    rows = max(1, SSAO_BAND_ELEMENTS // max(1, b * samples * w))
+    occlusion = torch.cat([_occlusion(d, normals[:, :, r0:r0 + rows], k, r0, radius, samples,
+                                      bias, softness) for r0 in range(0, h, rows)], dim=2)
+    ao = torch.where(valid, 1.0 - occlusion, torch.ones_like(occlusion))
+    if blur:
+        ao = F.avg_pool2d(F.pad(ao, (1, 2, 1, 2), mode="replicate"), 4, stride=1)
+    return ao.clamp(0.0, 1.0)
+
+
+#: Pixel-samples (B x samples x rows x W) of one band of rows of :func:`ssao`: its ~20
+#: per-sample temporaries then stay in the CPU's caches instead of spanning the frame
+#: (docs/benchmarks.md, section pass-bands).
+SSAO_BAND_ELEMENTS: int = 2**19
+
+
+def _occlusion(d: torch.Tensor, normals: torch.Tensor, k: torch.Tensor, r0: int,
+               radius: float, samples: int, bias: float, softness: float) -> torch.Tensor:
+    """Mean occlusion ``(B, 1, rows, W)`` of the rows ``r0 .. r0 + rows`` of a frame of
+    view depths ``d`` ``(B, 1, H, W)`` (empty pixels at FAR_DEPTH), their ``normals``
+    ``(B, 3, rows, W)`` and intrinsics ``k`` ``(B, 4)`` (see :func:`ssao`)."""
+    b, _, h, w = d.shape
+    rows = normals.shape[2]
+    dev, dt = d.device, d.dtype
     fx, fy, cx, cy = (k[:, n].reshape(b, 1, 1, 1) for n in range(4))
     jj = torch.arange(w, device=dev, dtype=dt).reshape(1, 1, 1, w)
-    ii = torch.arange(h, device=dev, dtype=dt).reshape(1, 1, h, 1)
-    px, py, pz = d * (jj - cx) / fx, -d * (ii - cy) / fy, -d  # each (B, 1, H, W)
+    ii = torch.arange(r0, r0 + rows, device=dev, dtype=dt).reshape(1, 1, rows, 1)
+    d_rows = d[:, :, r0:r0 + rows]
+    px, py, pz = d_rows * (jj - cx) / fx, -d_rows * (ii - cy) / fy, -d_rows  # (B, 1, rows, W)
 
     # unit normal (safe: zero vectors -> facing the camera); "double where" keeps grads finite
     nn2 = (normals * normals).sum(dim=1, keepdim=True)
@@ -140,7 +165,8 @@ def ssao(
     # per-pixel rotation about the normal from the 4x4 tile
     tile = torch.tensor(_BAYER4, device=dev, dtype=dt)
     ang = (tile + 0.5) * (2.0 * math.pi / 16.0)
-    ang = ang.repeat((h + 3) // 4, (w + 3) // 4)[:h, :w].reshape(1, 1, h, w)
+    ang = ang.repeat((rows + 3) // 4 + 1, (w + 3) // 4)[r0 % 4:r0 % 4 + rows, :w]
+    ang = ang.reshape(1, 1, rows, w)
     ca, sa = torch.cos(ang), torch.sin(ang)
     t, s = (
         tuple(ca * tc + sa * sc for tc, sc in zip(t, s, strict=True)),
@@ -150,7 +176,7 @@ def ssao(
     kern = hemisphere_kernel(samples, dt).to(dev)  # (N, 3)
     kx, ky, kz = (kern[:, c].reshape(1, -1, 1, 1) for c in range(3))
     pos = [p + radius * (kx * tc + ky * sc + kz * nc) for p, tc, sc, nc in
-           zip((px, py, pz), t, s, (nx, ny, nz), strict=True)]  # each (B, N, H, W)
+           zip((px, py, pz), t, s, (nx, ny, nz), strict=True)]  # each (B, N, rows, W)
     ds = -pos[2]
     front = ds > NEAR_EPS
     ds_safe = torch.where(front, ds, torch.ones_like(ds))
@@ -158,19 +184,15 @@ def ssao(
     si = cy - fy * pos[1] / ds_safe
     grid = torch.stack([(2.0 * sj + 1.0) / w - 1.0, (2.0 * si + 1.0) / h - 1.0], dim=-1)
     scene = F.grid_sample(
-        d, grid.reshape(b, samples * h, w, 2), mode="bilinear", padding_mode="border",
+        d, grid.reshape(b, samples * rows, w, 2), mode="bilinear", padding_mode="border",
         align_corners=False,
-    ).reshape(b, samples, h, w)
+    ).reshape(b, samples, rows, w)
     occ = ((ds - bias - scene) / softness).clamp(0.0, 1.0)
-    rng = smoothstep(radius / (d - scene).abs().clamp(min=radius))
+    rng = smoothstep(radius / (d_rows - scene).abs().clamp(min=radius))
     # samples behind the camera or projecting off-screen (no depth known there) count as open
     onscreen = (sj >= -0.5) & (sj <= w - 0.5) & (si >= -0.5) & (si <= h - 0.5)
     counted = front & onscreen
-    occlusion = torch.where(counted, occ * rng, torch.zeros_like(occ)).mean(dim=1, keepdim=True)
-    ao = torch.where(valid, 1.0 - occlusion, torch.ones_like(occlusion))
-    if blur:
-        ao = F.avg_pool2d(F.pad(ao, (1, 2, 1, 2), mode="replicate"), 4, stride=1)
-    return ao.clamp(0.0, 1.0)
+    return torch.where(counted, occ * rng, torch.zeros_like(occ)).mean(dim=1, keepdim=True)
 
 
 class SSAO(nn.Module):
