@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 from bench_raster import SUBDIV
+from benchmd import markdown_table, update_section
 
 
 def load_renamed(src: Path, name: str):
@@ -46,6 +47,10 @@ def main() -> None:
     ap.add_argument("--turns", type=int, default=16)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--grad", action="store_true", help="also backward (sum of squares)")
+    ap.add_argument("--section", default=None,
+                    help="write the table to this docs/benchmarks.md section")
+    ap.add_argument("--title", default="Rasterizer: before / after", help="its heading")
+    ap.add_argument("--note", default="", help="text under the table (what changed)")
     args = ap.parse_args()
 
     import torch
@@ -56,6 +61,7 @@ def main() -> None:
     before = load_renamed(args.before, "torchraster_before")
     torch.set_num_threads(args.threads)
     print("row | before ms | after ms | after / before (median of per-turn ratios)")
+    rows = []
     for text in args.rows:
         *name, res, batch = text.split()
         name, res, batch = " ".join(name), int(res), int(batch)
@@ -92,10 +98,20 @@ def main() -> None:
                 start = time.perf_counter()
                 run(module)
                 times[module].append(time.perf_counter() - start)
-        ratio = statistics.median(a / b for a, b in zip(times[after], times[before],
-                                                        strict=True))
+        ratios = [a / b for a, b in zip(times[after], times[before], strict=True)]
+        ratio = statistics.median(ratios)
         print(f"{text} | {statistics.median(times[before]) * 1e3:.1f} | "
               f"{statistics.median(times[after]) * 1e3:.1f} | {ratio:.3f}", flush=True)
+        rows.append([text, statistics.median(times[before]) * 1e3,
+                     statistics.median(times[after]) * 1e3, ratio,
+                     f"{min(ratios):.2f}-{max(ratios):.2f}"])
+    if args.section:
+        method = " ".join(__doc__.split("\n\n")[1].split())
+        table = markdown_table(["row (faces, resolution, batch)", "before ms", "after ms",
+                                "after / before (median of turns)", "per-turn range"], rows)
+        update_section(args.section, f"## {args.title}\n\n{method} {args.turns} turns, "
+                       f"{args.threads} torch threads{', with backward' if args.grad else ''}."
+                       f"\n\n{table}\n\n{args.note}")
 
 
 if __name__ == "__main__":

@@ -117,6 +117,73 @@ def test_occlusion_culling_changes_nothing(case: str, monkeypatch) -> None:
     assert (frags.face_id >= 0).any()
 
 
+def _plane_and_back_faces(gen: torch.Generator, b: int, n: int) -> tuple[torch.Tensor,
+                                                                        torch.Tensor]:
+    """A front-facing plane at NDC depth 0.5 over the frame above a slanted line, and ``n``
+    small back faces per item around that line at depths within 1e-3 of the plane (a
+    quarter of them in front of it): those behind it are hidden above the line and visible
+    below it. An occlusion test that is too bold by 1e-5 of depth, or misses a tile of a
+    box, drops a visible face here."""
+    plane = torch.tensor([[-1.0, -0.5, 0.5, 1.0], [1.0, 0.3, 0.5, 1.0], [1.0, 1.0, 0.5, 1.0],
+                          [-1.0, 1.0, 0.5, 1.0]])
+    x = torch.rand(b, n, 1, 1, generator=gen) * 2.2 - 1.1
+    y = -0.1 + 0.4 * x + 0.2 * torch.randn(b, n, 1, 1, generator=gen)  # about the line
+    size = 0.02 + 0.2 * torch.rand(b, n, 1, 1, generator=gen)
+    # right triangles with the right angle at any of the four corners, clockwise in NDC
+    flip = torch.randint(0, 2, (b, n, 1, 2), generator=gen) * 2 - 1
+    corner = torch.tensor([[0.0, 0.0], [0.0, 1.0], [1.0, 0.0]]) * flip
+    odd = (flip.prod(-1) < 0).squeeze(-1)  # one axis flipped: the winding too, so swap
+    corner[odd] = corner[odd][:, [0, 2, 1]]
+    xy = torch.cat([x, y], -1) + size * corner
+    z = 0.5 + 1e-3 * (torch.rand(b, n, 1, 1, generator=gen) - 0.25) + 1e-4 * torch.rand(
+        b, n, 3, 1, generator=gen)
+    tris = torch.cat([xy, z, torch.ones_like(z)], -1).view(b, 3 * n, 4)
+    clip = torch.cat([plane.expand(b, -1, -1), tris], 1)
+    quarter = torch.tensor([[0.0, 1.0], [-1.0, 0.0]])  # a rotation: windings stay
+    for item in range(b):  # item k turned by k quarter turns: the line runs every way
+        clip[item, :, :2] = clip[item, :, :2] @ torch.linalg.matrix_power(quarter, item % 4)
+    faces = torch.cat([torch.tensor([[0, 1, 2], [0, 2, 3]]), 4 + torch.arange(3 * n).view(n, 3)])
+    return clip, faces
+
+
+@pytest.mark.parametrize("case", ["soup", "plane"])
+def test_occlusion_culls_only_hidden_triangles(case: str, monkeypatch) -> None:
+    """Every back face the occlusion test drops (rasterize._visible_subset) is hidden: each
+    of its keys, rasterized alone, is larger than the final key of its pixel; and it drops
+    many (400 of them checked). A direct check of the test's soundness, independent of
+    whether a wrongly dropped face would have changed the picture (on a closed mesh no
+    back face is ever visible, so none can be dropped wrongly there)."""
+    gen = torch.Generator().manual_seed(4)
+    if case == "soup":
+        clip, faces, _ = random_soup(gen, 2, 2000, weights=(1, 0.2, 0, 0, 0, 0))
+        clip, res = clip.float(), (67, 80)
+    else:
+        clip, faces = _plane_and_back_faces(gen, 8, 300)
+        res = (91, 100)
+    dropped = []
+    orig = rasterize_module._visible_subset
+
+    def spy(screen, idx, keys, shape, tile):
+        out = orig(screen, idx, keys, shape, tile)
+        gone = torch.ones(len(screen), dtype=torch.bool)
+        gone[out] = False
+        gone = idx[gone[idx]]
+        dropped.append(torch.stack([screen.batch[gone], screen.face[gone]]))
+        return out
+
+    monkeypatch.setattr(rasterize_module, "OCCLUSION_MIN_WORK", 0)
+    monkeypatch.setattr(rasterize_module, "_visible_subset", spy)
+    final = _keys(clip, faces, res)[0].view(clip.shape[0], -1)
+    pairs = torch.cat(dropped, 1).unique(dim=1)
+    assert pairs.shape[1] > 100
+    monkeypatch.setattr(rasterize_module, "OCCLUSION_CULLING", False)
+    for item, face in pairs.T[torch.randperm(pairs.shape[1], generator=gen)[:400]].tolist():
+        alone = _keys(clip[item:item + 1], faces[face:face + 1], res)[0]
+        hit = alone != rasterize_module.EMPTY_KEY
+        key = (alone[hit] >> 32 << 32) | face
+        assert (key > final[item][hit]).all(), (item, face)
+
+
 @pytest.mark.parametrize("case", ["soup64", "soup32_tile12", "sphere_layers", "small_budget"])
 def test_ragged_pass_equals_block_passes(case: str, monkeypatch) -> None:
     """The ragged pass over runs of few candidates (rasterize.ragged_keys: every block shape
@@ -158,6 +225,91 @@ def test_ragged_pass_equals_block_passes(case: str, monkeypatch) -> None:
     assert not calls
     assert torch.equal(ragged, plain)
     assert (plain[-1] != rasterize_module.EMPTY_KEY).any()
+
+
+@pytest.mark.parametrize("shape,tile", [((2, 37, 45), 4), ((1, 64, 64), 4), ((3, 9, 70), 2),
+                                        ((1, 33, 16), 8)])
+def test_tile_maxima_bound_every_box(shape, tile) -> None:
+    """The occlusion test's lookup (rasterize._box_maxima: rasterize._tile_maxima read at a
+    box's four corners, at the finest level whose tiles are larger than its side - 1) is
+    exactly the largest
+    depth of the keys in the tiles the box touches, so at least that of the box, for boxes
+    of every side, position and item (brute force); empty pixels read +inf."""
+    b, h, w = shape
+    gen = torch.Generator().manual_seed(2)
+    depth = torch.rand(b, h, w, generator=gen) * 2 - 1
+    depth[torch.rand(b, h, w, generator=gen) < 0.05] = float("inf")  # empty pixels
+    keys = rasterize_module.depth_key(depth) | torch.randint(0, 99, (b, h, w), generator=gen)
+    keys[depth == float("inf")] = rasterize_module.EMPTY_KEY
+    maxima, by_extent = rasterize_module._tile_maxima(keys, tile)
+    n = 3000
+    item = torch.randint(0, b, (n,), generator=gen)
+    side = (torch.rand(n, generator=gen) ** 2 * max(h, w)).long().clamp(min=1)
+    x0 = (torch.rand(n, generator=gen) * (w - side.clamp(max=w) + 1)).long()
+    y0 = (torch.rand(n, generator=gen) * (h - side.clamp(max=h) + 1)).long()
+    x1, y1 = (x0 + side - 1).clamp(max=w - 1), (y0 + side - 1).clamp(max=h - 1)
+    ext = torch.maximum(x1 - x0, y1 - y0)
+    got = rasterize_module._box_maxima(maxima, by_extent, torch.stack([x0, x1, y0, y1]), ext,
+                                       item)
+    s = by_extent[0][ext]  # log2 of the level's tile side
+    # the finest level whose tiles hold the box's side - 1
+    assert ((2 ** s >= ext) & ((2 ** s == tile) | (2 ** s < 2 * ext))).all()
+    for k in range(n):
+        t = 2 ** int(s[k])  # the level's tile side
+        ty0, tx0 = int(y0[k]) // t * t, int(x0[k]) // t * t
+        ty1, tx1 = int(y1[k]) // t * t + t, int(x1[k]) // t * t + t
+        assert ty1 - ty0 <= 2 * t and tx1 - tx0 <= 2 * t
+        assert got[k] == depth[item[k], ty0:ty1, tx0:tx1].max()
+        assert got[k] >= depth[item[k], y0[k]:y1[k] + 1, x0[k]:x1[k] + 1].max()
+
+
+@pytest.mark.parametrize("res,tile", [((37, 45), 16), ((64, 64), 4), ((20, 90), 12), ((9, 9), 16)])
+def test_tested_boxes_hold_every_binned_centre(res, tile) -> None:
+    """binning.tested_boxes (the occlusion test's box per triangle) holds every pixel centre
+    that bin_triangles hands to the coverage test, for small and large triangles, blocks
+    clamped at the frame's edge and tiles that are not powers of two."""
+    from torchraster.raster import binning
+    from torchraster.raster import clip as clip_mod
+
+    gen = torch.Generator().manual_seed(8)
+    pos, faces, _ = random_soup(gen, 2, 400)
+    pos = pos.float() * torch.tensor([1.5, 1.5, 1.0, 1.0])
+    h, w = res
+    b = pos.shape[0]
+    screen = clip_mod.clip_and_project(
+        pos, clip_mod.project(pos, res).view(-1, 3).T.contiguous(), clip_mod.outcodes(pos),
+        faces.T.contiguous(), torch.arange(faces.shape[0]).repeat(b),
+        torch.arange(b).repeat_interleave(faces.shape[0]), res, False)
+    screen, runs, n_small = binning.sort_by_block(screen, res, tile)
+    setup = binning.setup_triangles(screen)
+    boxes = binning.tested_boxes(setup.box, res, tile)
+    seen = torch.zeros(len(screen), dtype=torch.bool)
+    for rec in binning.bin_triangles(setup, runs, n_small, res, tile, 2**12):
+        tri = torch.arange(len(screen))[rec.tri]
+        seen[tri] = True
+        box = boxes[:, tri]
+        assert (rec.x0 >= box[0]).all() and (rec.x0 + rec.kw - 1 <= box[1]).all()
+        assert (rec.y0 >= box[2]).all() and (rec.y0 + rec.kh - 1 <= box[3]).all()
+    # not vacuous: small triangles are all binned, and some large ones (others may lie in
+    # tiles an edge proves empty)
+    assert seen[:n_small].all() and (seen[n_small:].any() or max(res) <= tile)
+
+
+def test_triangle_chunks_keep_items_whole() -> None:
+    """Triangle chunks (rasterize._triangle_chunks) list every (item, face) pair once, in
+    order, hold at most the budget, and split an item only when it is larger than that."""
+    for counts, per in [([10, 10, 10], 25), ([3, 3, 3, 3], 7), ([1000, 10, 500], 300),
+                        ([5, 0, 5], 5), ([7], 7)]:
+        b, total = len(counts), sum(counts)
+        starts = torch.tensor([sum(counts[:i]) for i in range(b)])
+        ranges = torch.stack([starts, starts + torch.tensor(counts)], 1)
+        chunks = list(rasterize_module._triangle_chunks(b, total, ranges, "cpu", per))
+        pairs = [(int(i), int(f)) for bi, fi in chunks for i, f in zip(bi, fi, strict=True)]
+        assert pairs == [(i, f) for i in range(b) for f in range(starts[i], starts[i] + counts[i])]
+        assert all(0 < bi.numel() <= per for bi, _ in chunks)
+        for item, count in enumerate(counts):
+            holding = sum(bool((bi == item).any()) for bi, _ in chunks)
+            assert holding == (0 if count == 0 else -(-count // per) if count > per else 1)
 
 
 def test_occlusion_culling_skips_hidden_back_faces(monkeypatch) -> None:

@@ -23,6 +23,7 @@ with the top-left tie rule below, no centre is covered twice or missed (no crack
 
 from __future__ import annotations
 
+import bisect
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -214,7 +215,7 @@ def block_sizes(tile: int) -> list[int]:
     """Block edge lengths for small triangles: 1, 2, 4, 6, 8, 12, 16, ... (powers of two
     and, from 4 up, 1.5 times them) and ``tile``.
 
-    Blocks are square (:func:`_block_shapes`), so each size is one shape, one run of
+    Blocks are square (:func:`sort_by_block`), so each size is one shape, one run of
     launches. With per-axis shapes, 1.5x steps had doubled the shapes and measured 25-35 %
     slower at 256² - 512², batch 1; with square blocks they are neutral at 512² and up and
     7-15 % faster at 256², batch 1 (scripts/ab_raster.py, in turns), where 10 % of the
@@ -229,21 +230,17 @@ def block_sizes(tile: int) -> list[int]:
     return sorted(sizes)
 
 
-def _block_shapes(box: torch.Tensor, resolution: tuple[int, int], tile: int):
-    """(small (N,) bool, kh (N,), kw (N,)) of pixel boxes (4, N): whether a triangle gets
-    one block (box at most ``tile`` wide and high) and that block's edge lengths: the
-    :func:`block_sizes` side of the box's longer edge, for both (clamped to the frame).
-    One shape per size instead of one per (kh, kw) pair: with power-of-two sizes, 3-16 %
-    faster on the six scripts/bench_raster.py rows compared (scripts/ab_raster.py), the
-    launches saved outweighing the extra tested centres."""
-    h, w = resolution
-    bw = box[BOX_XMAX] - box[BOX_XMIN] + 1
-    bh = box[BOX_YMAX] - box[BOX_YMIN] + 1
-    small = (bw <= tile) & (bh <= tile)
-    sizes = torch.tensor(block_sizes(tile), device=box.device)
-    lut = sizes[torch.searchsorted(sizes, torch.arange(tile + 1, device=box.device).clamp(1))]
-    k = lut.index_select(0, torch.maximum(bw, bh).clamp_(1, tile))
-    return small, k.clamp(max=h), k.clamp(max=w)
+def _shape_table(tile: int, device: torch.device) -> torch.Tensor:
+    """(tile + 1,) uint8 block shape of a triangle, indexed by its pixel box's larger side
+    - 1 (clamped to ``tile``): the index in :func:`block_sizes` of the smallest block side
+    holding the box, and ``len(block_sizes(tile))`` for boxes over ``tile`` pixels (large
+    triangles, binned to tiles). One shape per size, square blocks: with power-of-two
+    sizes, 3-16 % faster on the six scripts/bench_raster.py rows compared
+    (scripts/ab_raster.py) than a shape per (kh, kw) pair, the launches saved outweighing
+    the extra tested centres."""
+    sizes = block_sizes(tile)
+    shape = [bisect.bisect_left(sizes, side) for side in range(1, tile + 1)] + [len(sizes)]
+    return torch.tensor(shape, dtype=torch.uint8, device=device)
 
 
 def sort_by_block(tris: ScreenTriangles, resolution: tuple[int, int], tile: int,
@@ -258,29 +255,31 @@ def sort_by_block(tris: ScreenTriangles, resolution: tuple[int, int], tile: int,
         tile: the tile size of large triangles (and the largest block).
         select: (M,) int64 indices of the triangles to keep (instead of ``tris.valid``).
 
-    Returns the reordered triangles, the runs (kh, kw, start, count) of small triangles, and
-    the index where the large triangles (boxes over ``tile`` pixels) begin.
+    Returns the reordered triangles, the runs (kh, kw, start, count) of small triangles
+    (blocks of the :func:`block_sizes` side holding the box's larger side, clamped to the
+    frame), and the index where the large triangles (boxes over ``tile`` pixels) begin.
     """
     h, w = resolution
     if select is None and tris.valid is not None:
         select = tris.valid.nonzero().squeeze(1)
     box = tris.box if select is None else take_columns(tris.box, select)
-    small, kh, kw = _block_shapes(box, resolution, tile)
-    big_key = (h + 1) * (w + 1)
-    shape_key = torch.where(small, kh * (w + 1) + kw, big_key)
-    shape_key, by_shape = torch.sort(shape_key)
-    keys, counts = torch.unique_consecutive(shape_key, return_counts=True)
+    side = torch.maximum(box[BOX_XMAX] - box[BOX_XMIN], box[BOX_YMAX] - box[BOX_YMIN])
+    shape = _shape_table(tile, box.device).index_select(0, side.clamp_(max=tile))
+    shape, by_shape = torch.sort(shape, stable=True)  # uint8 keys: ~6x faster than int64
+    keys, counts = torch.unique_consecutive(shape, return_counts=True)
     order = by_shape if select is None else select.index_select(0, by_shape)
     tris = ScreenTriangles(
         pos=tris.pos.view(9, -1).index_select(1, order).view(3, 3, -1),
         area=tris.area.index_select(0, order), box=take_columns(box, by_shape),
         face=tris.face.index_select(0, order), batch=tris.batch.index_select(0, order))
-    runs, start = [], 0
+    sizes = block_sizes(tile)
+    runs, start, n_small = [], 0, len(order)
     for key, count in zip(keys.tolist(), counts.tolist(), strict=True):
-        if key != big_key:
-            runs.append((key // (w + 1), key % (w + 1), start, count))
+        if key == len(sizes):  # large triangles: the last run
+            n_small = start
+        else:
+            runs.append((min(sizes[key], h), min(sizes[key], w), start, count))
         start += count
-    n_small = start - (counts[-1].item() if keys.numel() and keys[-1].item() == big_key else 0)
     return tris, runs, n_small
 
 
@@ -289,16 +288,35 @@ def tested_boxes(box: torch.Tensor, resolution: tuple[int, int], tile: int) -> t
     :func:`bin_triangles` will test for triangles with pixel boxes ``box`` (4, N): the
     small triangles' whole block (:func:`block_sizes`), the large ones' whole tiles. A
     covered centre can lie outside the triangle's own box only by float rounding of the
-    edge functions, but never outside these."""
+    edge functions, but never outside these.
+
+    The same blocks as :func:`sort_by_block` and :func:`bin_triangles` (tests compare them),
+    written for the occlusion test's hundreds of thousands of triangles: the block side is
+    one lookup of the box's larger extent, and only the large triangles (usually none or a
+    few) take the tile formula.
+    """
     h, w = resolution
-    small, kh, kw = _block_shapes(box, resolution, tile)
-    th, tw = min(tile, h), min(tile, w)
-    bx0, by0 = box[BOX_XMIN], box[BOX_YMIN]
-    x0 = torch.where(small, bx0.clamp(max=w - kw), ((bx0 // tile) * tile).clamp(max=w - tw))
-    y0 = torch.where(small, by0.clamp(max=h - kh), ((by0 // tile) * tile).clamp(max=h - th))
-    x1 = torch.where(small, x0 + kw, ((box[BOX_XMAX] // tile) * tile).clamp(max=w - tw) + tw) - 1
-    y1 = torch.where(small, y0 + kh, ((box[BOX_YMAX] // tile) * tile).clamp(max=h - th) + th) - 1
-    return torch.stack([x0, x1, y0, y1])
+    extent = torch.maximum(box[BOX_XMAX] - box[BOX_XMIN], box[BOX_YMAX] - box[BOX_YMIN])
+    sizes = torch.tensor(block_sizes(tile), device=box.device)
+    side = sizes[torch.searchsorted(sizes, torch.arange(1, tile + 1, device=box.device))]
+    small_extent = extent.clamp(max=tile - 1)  # side - 1 of the box -> the block's side
+    kw = side.clamp(max=w).index_select(0, small_extent)
+    kh = kw if h == w else side.clamp(max=h).index_select(0, small_extent)
+    x0, y0 = torch.minimum(box[BOX_XMIN], w - kw), torch.minimum(box[BOX_YMIN], h - kh)
+    out = torch.stack([x0, x0 + kw, y0, y0 + kh])
+    out[BOX_XMAX] -= 1
+    out[BOX_YMAX] -= 1
+    large = (extent >= tile).nonzero().squeeze(1)
+    if large.numel():
+        th, tw = min(tile, h), min(tile, w)
+        big = take_columns(box, large)
+        corner = torch.div(big, tile, rounding_mode="floor").mul_(tile)
+        corner[:2].clamp_(max=w - tw)
+        corner[2:].clamp_(max=h - th)
+        corner[BOX_XMAX] += tw - 1
+        corner[BOX_YMAX] += th - 1
+        out.index_copy_(1, large, corner)
+    return out
 
 
 def bin_triangles(

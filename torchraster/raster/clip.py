@@ -93,9 +93,9 @@ def project(clip_pos: torch.Tensor, resolution: tuple[int, int]) -> torch.Tensor
 
 def clip_and_project(
     clip_pos: torch.Tensor,
-    screen_pos: torch.Tensor,
+    screen_t: torch.Tensor,
     codes: torch.Tensor,
-    faces: torch.Tensor,
+    faces_t: torch.Tensor,
     face: torch.Tensor,
     batch: torch.Tensor,
     resolution: tuple[int, int],
@@ -104,32 +104,31 @@ def clip_and_project(
 ) -> ScreenTriangles:
     """Clip, cull and project the triangles (batch[n], faces[face[n]]).
 
-    clip_pos: (B, V, 4) clip-space vertices; screen_pos: (B, V, 3) their :func:`project`
-    ions; codes: (B, V) their :func:`outcodes`; faces: (F, 3); face, batch: (N,) int64.
-    Front faces are counter-clockwise in NDC (y up). cull_backfaces: drop back faces, for
-    every face (bool) or per face ((F,) bool tensor). margin: grow every pixel box by this
-    many pixels (soft coverage reaches beyond the triangle). Returns
-    :class:`ScreenTriangles`.
+    clip_pos: (B, V, 4) clip-space vertices; screen_t: (3, B*V) their projections (:func:`project`),
+    component-major and contiguous (``project(clip_pos).view(-1, 3).T.contiguous()``);
+    codes: (B, V) their :func:`outcodes`; faces_t: (3, F) contiguous vertex ids, vertex-major
+    (``faces.T.contiguous()``); face, batch: (N,) int64. Front faces are counter-clockwise
+    in NDC (y up). cull_backfaces: drop back faces, for every face (bool) or per face ((F,)
+    bool tensor). margin: grow every pixel box by this many pixels (soft coverage reaches
+    beyond the triangle). Returns :class:`ScreenTriangles`.
     """
     n_vert = codes.shape[1]
-    # Global vertex ids (item * V + vertex) of every corner; index_select is the fast gather.
-    corners = (faces.index_select(0, face) + (batch * n_vert)[:, None]).view(-1)  # (3N,)
-    c = codes.view(-1).index_select(0, corners).view(-1, 3)
-    any_out = c[:, 0] | c[:, 1] | c[:, 2]
-    all_out = c[:, 0] & c[:, 1] & c[:, 2]
+    # Global vertex ids (item * V + vertex) of every corner, vertex-major (3, N): every
+    # gather below reads and writes whole rows (no transposing copies).
+    corners = take_columns(faces_t, face).add_(batch * n_vert)
+    c = codes.view(-1).index_select(0, corners.view(-1)).view(3, -1)
+    any_out = c[0] | c[1] | c[2]
+    all_out = c[0] & c[1] & c[2]
     inside = any_out == 0
     needs_clip = (any_out != 0) & (all_out == 0)
 
     sel = inside.nonzero().squeeze(1)
-    corners = corners.view(-1, 3)
-    # Gathered straight into the component-major layout (3, 3, N), one 1-D gather per
-    # component (vertex-major ids), instead of (N, 3, 3) rows and a transposing copy.
-    ids = corners.index_select(0, sel).T.reshape(-1)
-    pos = take_columns(screen_pos.view(-1, 3).T, ids).view(3, 3, -1)
+    pos = take_columns(screen_t, take_columns(corners, sel).view(-1)).view(3, 3, -1)
     face_out, batch_out = face.index_select(0, sel), batch.index_select(0, sel)
     if bool(needs_clip.any()):
         sel = needs_clip.nonzero().squeeze(1)
-        ctri = clip_pos.reshape(-1, 4).index_select(0, corners.index_select(0, sel).view(-1))
+        ids = take_columns(corners, sel).T.reshape(-1)  # triangle-major
+        ctri = clip_pos.reshape(-1, 4).index_select(0, ids)
         ctri, cidx = _clip_polygons(ctri.view(-1, 3, 4))
         pos = torch.cat([pos, project(ctri, resolution).permute(2, 1, 0)], dim=2)
         face_out = torch.cat([face_out, face[sel][cidx]])

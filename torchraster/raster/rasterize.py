@@ -543,10 +543,12 @@ def resolve_keys(clip_pos, faces, resolution, cull_backfaces, face_ranges, tile,
         pos = clip_pos.detach()
         if pos.dtype != torch.float64:
             pos = pos.float()
-        codes, screen_pos = outcodes(pos), project(pos, (h, w))
+        codes = outcodes(pos)
+        screen_t = project(pos, (h, w)).view(-1, 3).T.contiguous()
+        faces_t = faces.T.contiguous()
         for batch_ids, face_ids in _triangle_chunks(b, faces.shape[0], face_ranges, pos.device,
                                                     max_candidates // 8):
-            screen = clip_and_project(pos, screen_pos, codes, faces, face_ids, batch_ids,
+            screen = clip_and_project(pos, screen_t, codes, faces_t, face_ids, batch_ids,
                                       (h, w), cull_backfaces, margin=coverage.margin)
             if band is not None:
                 band.clip_boxes(screen)
@@ -568,17 +570,19 @@ def resolve_keys(clip_pos, faces, resolution, cull_backfaces, face_ranges, tile,
 #: behind the front faces already resolved (:func:`resolve_keys`); results are identical
 #: either way (a switch for tests and benchmarks).
 OCCLUSION_CULLING = True
-_HIZ_TILE = 16  #: pixels per side of the finest tile of the occlusion test
+#: Pixels per side of the finest tiles of the occlusion test (a power of two); larger
+#: tested boxes start from tiles of about their mean size (:func:`_visible_subset`).
+HIZ_TILE = 4
 #: Occlusion culling runs only when the valid back faces' work (:func:`_back_candidates`)
-#: reaches this: below, the second binning pass and the depth pyramid cost more than they
-#: save. Measured in turns (both settings in one process, 16 turns each): 5k faces at
-#: 512², batch 1 (382k back centres, 2.5k back faces) 15 % faster without; 80k faces at
-#: 512², batch 1 (383k centres, 40k faces) 14 % faster with; 5k at 256², batch 8 (751k
-#: centres) 2-10 % faster with.
+#: reaches this: below, the second binning pass and the tile maxima cost more than they
+#: save. Measured in turns (both settings in one process, 15 turns each, with the 4-pixel
+#: tile maxima): spheres at batch 1 of 5k faces at 256² (3.4k back faces, 95k back
+#: centres) 22 % slower with; 20k at 256² (13k, 96k) even; 80k at 256² (50k, 96k) 15 %
+#: faster with; 5k at 512² and 1024² (3.4k faces; 382k and 1.5M centres) within 3 %.
 OCCLUSION_MIN_WORK = 2**19
-#: Weight of one back-facing triangle in that work, in pixel centres (its setup and
-#: binning cost, which culling also saves).
-OCCLUSION_TRIANGLE_WORK = 8
+#: Weight of one back-facing triangle in that work, in pixel centres (its clipping, setup
+#: and binning, which culling saves, cost more than the centres of its box).
+OCCLUSION_TRIANGLE_WORK = 32
 
 
 def _back_candidates(screen: ScreenTriangles, front: torch.Tensor) -> int:
@@ -740,55 +744,83 @@ def _visible_subset(screen: ScreenTriangles, idx: torch.Tensor, keys: torch.Tens
     """The triangles of ``idx`` (M,) that may still win a pixel: those whose lower bound of
     the depth over the pixel centres binning will test
     (:func:`~torchraster.raster.binning.plane_lower_bound` over
-    :func:`~torchraster.raster.binning.tested_boxes`) is not above the largest key of every
-    tile those centres touch (``keys`` (B*H*W,) so far). Tiles form a max pyramid (16 px,
-    32 px, ...) and each triangle reads the four tiles of the level whose tile holds its
-    box."""
+    :func:`~torchraster.raster.binning.tested_boxes`) is not above the largest depth of the
+    keys so far (``keys`` (B*H*W,)) in the tiles those centres touch: the tile maxima of
+    :func:`_tile_maxima` at the finest level whose tiles are larger than the box's side - 1
+    (the box then touches at most 2 x 2 of them: its corners' tiles)."""
     if idx.numel() == 0:
         return idx
     b, h, w = shape
     items = screen.batch.index_select(0, idx)
-    lo, hi = int(items.min()), int(items.max())  # a chunk's items are few: build only theirs
-    pyramid = _key_pyramid(keys.view(b, h, w)[lo:hi + 1])
-    x, y, z = screen.pos.view(9, -1).index_select(1, idx).view(3, 3, -1)
+    lo, hi = (int(v) for v in torch.aminmax(items))  # a chunk's items are few: only theirs
     box = tested_boxes(take_columns(screen.box, idx), (h, w), tile)
-    bound = depth_key(plane_lower_bound(depth_planes(x, y, z), box).clamp_(max=1.0))
-    # the box's longer side - 1
-    size = torch.maximum(box[BOX_XMAX] - box[BOX_XMIN], box[BOX_YMAX] - box[BOX_YMIN])
-    level = torch.zeros_like(size)
-    for k in range(1, len(pyramid)):
-        level += size >= (_HIZ_TILE << (k - 1))
-    flat = torch.cat([p.reshape(-1) for p in pyramid])
-    meta = torch.tensor([[0] + [p.numel() for p in pyramid[:-1]], [p.shape[1] for p in pyramid],
-                         [p.shape[2] for p in pyramid]], device=keys.device)
-    meta[0] = meta[0].cumsum(0)
-    offset, height, width = meta.index_select(1, level.clamp_(max=len(pyramid) - 1))
-    shift = level + (_HIZ_TILE.bit_length() - 1)
-    base = offset + (items - lo) * height * width
-    ys0, ys1 = (box[BOX_YMIN] >> shift) * width + base, (box[BOX_YMAX] >> shift) * width + base
-    xs0, xs1 = box[BOX_XMIN] >> shift, box[BOX_XMAX] >> shift
-    tile_max = torch.maximum(
-        torch.maximum(flat.index_select(0, ys0 + xs0), flat.index_select(0, ys0 + xs1)),
-        torch.maximum(flat.index_select(0, ys1 + xs0), flat.index_select(0, ys1 + xs1)))
-    return idx[bound <= tile_max]
+    extent = torch.maximum(box[BOX_XMAX] - box[BOX_XMIN], box[BOX_YMAX] - box[BOX_YMIN])
+    # finest tiles: about the boxes' mean size (finer ones would cost more to build than
+    # they cull), at least HIZ_TILE
+    finest = max(HIZ_TILE, 1 << (int(extent.sum()) // extent.numel()).bit_length() - 1)
+    maxima, by_extent = _tile_maxima(keys.view(b, h, w)[lo:hi + 1], finest)
+    x, y, z = screen.pos.view(9, -1).index_select(1, idx).view(3, 3, -1)
+    bound = plane_lower_bound(depth_planes(x, y, z), box).clamp_(max=1.0)  # keys clamp too
+    largest = _box_maxima(maxima, by_extent, box, extent, items - lo if hi > lo else None)
+    return idx[~(bound > largest)]  # NaN bounds stay (conservative)
 
 
-def _key_pyramid(keys: torch.Tensor) -> list[torch.Tensor]:
-    """Max pyramid of ``(B, H, W)`` resolve keys: level k holds the largest key of every
-    (16 * 2**k)-pixel square tile, ``(B, ceil(H / t), ceil(W / t))``; missing pixels past
-    the frame edge count as empty (``EMPTY_KEY``), which no triangle is hidden behind."""
-    levels = []
-    cur, t = keys, _HIZ_TILE
-    while True:
-        b, h, w = cur.shape
-        ph, pw = -h % t, -w % t
-        if ph or pw:
-            cur = torch.nn.functional.pad(cur, (0, pw, 0, ph), value=EMPTY_KEY)
-        cur = cur.view(b, (h + ph) // t, t, (w + pw) // t, t).amax((2, 4))
-        levels.append(cur)
-        if cur.shape[1] <= 1 and cur.shape[2] <= 1:
-            return levels
-        t = 2
+def _box_maxima(maxima: torch.Tensor, by_extent: tuple[torch.Tensor, ...], box: torch.Tensor,
+                extent: torch.Tensor, items: torch.Tensor | None) -> torch.Tensor:
+    """(N,) the largest depth of :func:`_tile_maxima` over the tiles each box touches:
+    ``box`` (4, N) int64 inclusive pixel boxes, ``extent`` (N,) their larger side - 1,
+    ``items`` (N,) their item among the maps' (None: all the first)."""
+    shift, width, per_item, offset = (t.index_select(0, extent) for t in by_extent)
+    if items is not None:
+        offset = offset.addcmul_(items, per_item)
+    top = (box[BOX_YMIN] >> shift).mul_(width).add_(offset)
+    bottom = (box[BOX_YMAX] >> shift).mul_(width).add_(offset)
+    left, right = box[BOX_XMIN] >> shift, box[BOX_XMAX] >> shift
+    return torch.maximum(
+        torch.maximum(maxima.index_select(0, top + left), maxima.index_select(0, top + right)),
+        torch.maximum(maxima.index_select(0, bottom + left),
+                      maxima.index_select(0, bottom + right)))
+
+
+def _tile_maxima(keys: torch.Tensor, tile: int
+                 ) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
+    """Tile maxima of ``(B, H, W)`` resolve keys for the occlusion test.
+
+    Level l has tiles of side ``tile * 2**l`` (up to one tile holding the frame) and holds
+    the largest depth (:func:`key_depth`: +inf where a pixel is empty) of each tile. Pixels
+    past the frame's edge count as -inf (no tested centre is there).
+
+    Returns:
+        maxima: the levels' ``(B, Hl, Wl)`` float32 maps, flattened and concatenated.
+        by_extent: four ``(max(H, W),)`` int64 tables indexed by a box's side - 1: for the
+            finest level whose tiles are larger than that (so the box touches at most 2 x 2
+            tiles), the level's shift ``log2(tile) + l``, width ``Wl``, per-item size
+            ``Hl * Wl`` and offset in ``maxima``.
+    """
+    b, h, w = keys.shape
+    rows, cols = -(-h // tile), -(-w // tile)
+    low = depth_key(torch.tensor(float("-inf"))).item()  # below every key
+    if rows * tile != h or cols * tile != w:
+        keys = torch.nn.functional.pad(keys, (0, cols * tile - w, 0, rows * tile - h),
+                                       value=low)
+    # two reductions over contiguous runs: 4x faster than one over both tile axes
+    level = key_depth(keys.reshape(b, rows * tile, cols, tile).amax(-1)
+                      .view(b, rows, tile, cols).amax(2))
+    maps = [level]
+    while tile << (len(maps) - 1) < max(h, w):
+        r, c = level.shape[1:]
+        level = torch.nn.functional.pad(level, (0, c % 2, 0, r % 2), value=float("-inf"))
+        level = level.view(b, (r + 1) // 2, 2, (c + 1) // 2, 2).amax((2, 4))
+        maps.append(level)
+    extent = torch.arange(max(h, w), device=keys.device)  # box side - 1
+    lvl = torch.zeros_like(extent)
+    for k in range(len(maps) - 1):
+        lvl += extent > (tile << k)
+    meta = torch.tensor([[tile.bit_length() - 1 + k, m.shape[2], m.shape[1] * m.shape[2], 0]
+                         for k, m in enumerate(maps)], device=keys.device)
+    meta[1:, 3] = torch.tensor([m.numel() for m in maps[:-1]], device=keys.device).cumsum(0)
+    return (torch.cat([m.reshape(-1) for m in maps]),
+            tuple(meta[:, i].index_select(0, lvl) for i in range(4)))
 
 
 def check_inputs(clip_pos, faces, resolution, face_ranges):
@@ -824,16 +856,29 @@ def check_inputs(clip_pos, faces, resolution, face_ranges):
 
 def _triangle_chunks(b: int, n_faces: int, face_ranges: torch.Tensor | None,
                      device: torch.device, per_chunk: int):
-    """Yield (batch ids, face ids) of at most ``per_chunk`` (item, face) pairs."""
+    """Yield (batch ids, face ids) of at most ``per_chunk`` (item, face) pairs, whole items
+    where they fit (an item's back faces are tested for occlusion against all of its front
+    faces); an item of more than ``per_chunk`` faces is split."""
     if face_ranges is None:
         starts = torch.zeros(b, dtype=torch.int64, device=device)
         counts = torch.full((b,), n_faces, dtype=torch.int64, device=device)
     else:
         starts, counts = face_ranges[:, 0], face_ranges[:, 1] - face_ranges[:, 0]
     offsets = torch.cumsum(counts, 0) - counts
-    total = int(counts.sum())
-    for k0 in range(0, total, per_chunk):
-        k = torch.arange(k0, min(total, k0 + per_chunk), device=device)
+    cuts, end, fill = [0], 0, 0  # chunk boundaries; pairs so far; pairs in the open chunk
+    for count in counts.tolist():
+        if fill and fill + count > per_chunk:
+            cuts.append(end)
+            fill = 0
+        end += count
+        fill += count
+        while fill > per_chunk:
+            cuts.append(end - fill + per_chunk)
+            fill -= per_chunk
+    if end > cuts[-1]:
+        cuts.append(end)
+    for k0, k1 in zip(cuts[:-1], cuts[1:], strict=False):
+        k = torch.arange(k0, k1, device=device)
         batch_ids = torch.searchsorted(offsets, k, right=True) - 1
         yield batch_ids, starts[batch_ids] + (k - offsets[batch_ids])
 
