@@ -128,7 +128,7 @@ from torchraster.testing.reference_raster import (
     to_clip,
 )
 
-raster_module = importlib.import_module("torchraster.raster.rasterize")  # band size knob
+raster_module = importlib.import_module("torchraster.raster.rasterize")  # knobs: bands, culling
 ROOT = Path(__file__).resolve().parent.parent
 
 KINDS = ("soup", "huge", "near_far", "closed", "grid")
@@ -179,6 +179,17 @@ def _check_numerics(clip: torch.Tensor, faces: torch.Tensor, res, cull: bool, ge
     finally:
         raster_module.DEPTH_BAND_PIXELS = band_pixels
     c["bands_vs_whole"] += int((banded != whole).sum() + (torch.isfinite(whole) != hit).sum())
+    # occlusion culling of back faces forced on (every scene, however small) against off
+    keys = {}
+    for name, min_work, on in (("culled", 0, True), ("plain", 0, False)):
+        saved = raster_module.OCCLUSION_MIN_WORK, raster_module.OCCLUSION_CULLING
+        raster_module.OCCLUSION_MIN_WORK, raster_module.OCCLUSION_CULLING = min_work, on
+        try:
+            keys[name] = raster_module.resolve_keys(clip.detach(), faces, res, cull, None,
+                                                       16, 2**20, 320)[0].clone()
+        finally:
+            raster_module.OCCLUSION_MIN_WORK, raster_module.OCCLUSION_CULLING = saved
+    c["occlusion_vs_plain"] += int((keys["culled"] != keys["plain"]).sum())
     return frags
 
 
@@ -357,11 +368,12 @@ COLUMNS = [
     ("nonfinite_grad_attrs", "NaN/Inf grad attrs"), ("cracks", "cracks (px)"),
     ("grid_pixels", "grid pixels"), ("double_hits", "double hits (px)"),
     ("whole_vs_alone", "whole != alone (px)"), ("bands_vs_whole", "depth in bands != whole (px)"),
-    ("exceptions", "exceptions"),
+    ("occlusion_vs_plain", "culled != plain (px)"), ("exceptions", "exceptions"),
 ]
 PROBLEMS = {"nonfinite_bary", "nonfinite_depth", "depth_out_of_range", "bad_empty",
             "nonfinite_image", "nonfinite_grad_clip", "nonfinite_grad_attrs", "cracks",
-            "double_hits", "whole_vs_alone", "bands_vs_whole", "exceptions"}
+            "double_hits", "whole_vs_alone", "bands_vs_whole", "occlusion_vs_plain",
+            "exceptions"}
 
 
 def picture(path: Path) -> None:

@@ -87,13 +87,17 @@ def test_block_classification_matches_per_centre_tests(dtype: torch.dtype) -> No
     assert int(full.sum()) > 50 and int((~may).sum()) > 50 and int((may & ~full).sum()) > 50
 
 
-@pytest.mark.parametrize("case", ["sphere", "soup", "soup_tile4", "big_triangles"])
+@pytest.mark.parametrize("case", ["sphere", "soup", "soup_tile4", "big_triangles",
+                                  "subpixel"])
 def test_occlusion_culling_changes_nothing(case: str, monkeypatch) -> None:
     gen = torch.Generator().manual_seed(5)
     tile = 4 if case == "soup_tile4" else 16
     if case == "sphere":
         clip, faces, _ = _sphere_clip()
         res = (40, 56)
+    elif case == "subpixel":  # back faces' boxes of one pixel: a mean box side of 0
+        clip, faces, _ = _sphere_clip(b=2, subdiv=5)
+        res = (24, 20)
     elif case == "big_triangles":  # a few huge faces in front of and behind others
         clip, faces, _ = random_soup(gen, 2, 12, weights=(1, 0, 0, 0, 0, 0))
         clip = clip.float() * torch.tensor([4.0, 4.0, 1.0, 1.0])

@@ -757,7 +757,8 @@ def _visible_subset(screen: ScreenTriangles, idx: torch.Tensor, keys: torch.Tens
     extent = torch.maximum(box[BOX_XMAX] - box[BOX_XMIN], box[BOX_YMAX] - box[BOX_YMIN])
     # finest tiles: about the boxes' mean size (finer ones would cost more to build than
     # they cull), at least HIZ_TILE
-    finest = max(HIZ_TILE, 1 << (int(extent.sum()) // extent.numel()).bit_length() - 1)
+    mean = int(extent.sum()) // extent.numel()
+    finest = max(HIZ_TILE, 1 << max(0, mean.bit_length() - 1))
     maxima, by_extent = _tile_maxima(keys.view(b, h, w)[lo:hi + 1], finest)
     x, y, z = screen.pos.view(9, -1).index_select(1, idx).view(3, 3, -1)
     bound = plane_lower_bound(depth_planes(x, y, z), box).clamp_(max=1.0)  # keys clamp too
@@ -877,10 +878,15 @@ def _triangle_chunks(b: int, n_faces: int, face_ranges: torch.Tensor | None,
             fill -= per_chunk
     if end > cuts[-1]:
         cuts.append(end)
+    items = torch.arange(b, device=device)
+    first_face = starts - offsets  # face id = pair index + this, per item
     for k0, k1 in zip(cuts[:-1], cuts[1:], strict=False):
-        k = torch.arange(k0, k1, device=device)
-        batch_ids = torch.searchsorted(offsets, k, right=True) - 1
-        yield batch_ids, starts[batch_ids] + (k - offsets[batch_ids])
+        # each item's pairs in [k0, k1): runs of batch ids (no search per pair)
+        taken = (torch.minimum(offsets + counts, torch.tensor(k1, device=device))
+                 - offsets.clamp(min=k0)).clamp_(min=0)
+        batch_ids = torch.repeat_interleave(items, taken, output_size=k1 - k0)
+        face_ids = torch.repeat_interleave(first_face, taken, output_size=k1 - k0)
+        yield batch_ids, face_ids.add_(torch.arange(k0, k1, device=device))
 
 
 def depth_key(z: torch.Tensor) -> torch.Tensor:
