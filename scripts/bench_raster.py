@@ -199,21 +199,45 @@ def profile_section(args) -> None:
 
 def rows_only(args) -> None:
     """Run the rows named in ``--rows`` ("<faces> <res> <batch>") and print them (A/B against
-    ``--before-src`` when given: the two codes alternate, ``--repeats`` rounds each)."""
+    ``--before-src`` when given: the two codes alternate, ``--repeats`` rounds each). With
+    ``--section``, each row runs in ``--rounds`` fresh processes (rounds interleaved over
+    the rows) and the medians and the ratio's range go to that docs/benchmarks.md section."""
     labels = ([("before", args.before_src)] if args.before_src else []) + [("after", None)]
-    print("row | code | torchraster ms | llvmpipe ms | ratio")
+    specs = []
     for text in args.rows:
         *name, res, batch = text.split()
         name = " ".join(name)
         kind, subdiv = ("frame", SUBDIV["80k"]) if name == "82k frame" else ("sphere",
                                                                              SUBDIV[name])
-        spec = {"kind": kind, "subdiv": subdiv, "res": int(res), "batch": int(batch),
-                "repeats": args.repeats, "gl": True, "threads": args.threads}
-        for label, src in labels:
-            r = run(spec, pythonpath=src)
-            print(f"{text} | {label} | {r['ours_s'] * 1e3:.1f} | "
-                  f"{r.get('gl_s', math.nan) * 1e3:.1f} | {r.get('ratio', math.nan):.2f}",
-                  flush=True)
+        specs.append((text, {"kind": kind, "subdiv": subdiv, "res": int(res),
+                             "batch": int(batch), "repeats": args.repeats, "gl": True,
+                             "threads": args.threads}))
+    print("row | code | torchraster ms | llvmpipe ms | ratio")
+    found: dict[tuple[str, str], list[dict]] = {}
+    for _ in range(args.rounds if args.section else 1):
+        for text, spec in specs:
+            for label, src in labels:
+                r = run(spec, pythonpath=src)
+                found.setdefault((text, label), []).append(r)
+                print(f"{text} | {label} | {r['ours_s'] * 1e3:.1f} | "
+                      f"{r.get('gl_s', math.nan) * 1e3:.1f} | {r.get('ratio', math.nan):.2f}",
+                      flush=True)
+    if not args.section:
+        return
+    from benchmd import markdown_table, update_section
+
+    table = []
+    for (text, label), results in found.items():
+        row = combine_rounds(results)
+        table.append([text, label, row["ours_s"] * 1e3, row.get("gl_s", math.nan) * 1e3,
+                      row.get("ratio", math.nan), row.get("ratio_range", "")])
+    update_section(args.section, f"## {args.title}\n\nRows of the main table above, "
+                   f"each in {args.rounds} fresh processes (rounds interleaved over the rows): "
+                   "medians of the per-process medians, and the lowest and highest per-process "
+                   "ratio (each process times ours and llvmpipe in turns).\n\n"
+                   + markdown_table(["row (faces, resolution, batch)", "code",
+                                     "torchraster ms", "llvmpipe ms", "ratio", "ratio range"],
+                                    table) + f"\n\n{args.note}")
 
 
 #: glibc (>= 2.35) tunable: malloc asks for transparent huge pages (madvise) on its mmapped
@@ -278,8 +302,13 @@ def main() -> None:
                     "section (e.g. the commit it was exported from)")
     ap.add_argument("--rows", nargs="+", metavar="ROW",
                     help="run only these rows of the main table, e.g. '5k 256 1' '82k frame "
-                         "512 8' (faces, resolution, batch); prints them, writes no section; "
-                         "with --before-src, each row also for that code, in turns")
+                         "512 8' (faces, resolution, batch); prints them (a section only with "
+                         "--section); with --before-src, each row also for that code, in turns")
+    ap.add_argument("--section", help="with --rows: write them (over --rounds processes) "
+                    "to this docs/benchmarks.md section")
+    ap.add_argument("--title", default="Rasterizer rows against llvmpipe",
+                    help="with --section: its heading")
+    ap.add_argument("--note", default="", help="with --section: text under the table")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
