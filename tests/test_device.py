@@ -2,6 +2,7 @@
 device, and the core runs on every available device (kornia-style ``device``/``dtype``
 fixtures from conftest.py; ``pytest --device all`` adds CUDA where it exists)."""
 
+import importlib
 import inspect
 from pathlib import Path
 
@@ -58,7 +59,15 @@ def test_render_path_factories_name_their_device():
         # large triangles go through the tile binning path
         quad = torch.tensor([[[-1, -1, 0, 1], [1, -1, 0, 1], [1, 1, 0, 1], [-1, 1, 0, 1.0]]])
         tr.rasterize(quad, torch.tensor([[0, 1, 2], [0, 2, 3]]), (128, 128))
-    assert out.image.shape == (2, 3, 64, 64)
+        # the occlusion test of back faces (tile maxima, tested boxes), forced on
+        raster = importlib.import_module("torchraster.raster.rasterize")
+        saved, raster.OCCLUSION_MIN_WORK = raster.OCCLUSION_MIN_WORK, 0
+        try:
+            clip = tr.mesh.transform_points(scene.positions, proj @ view)
+            keys = raster.resolve_keys(clip, scene.faces, (96, 80), False, None, 16, 2**20, 320)
+        finally:
+            raster.OCCLUSION_MIN_WORK = saved
+    assert out.image.shape == (2, 3, 64, 64) and (keys != raster.EMPTY_KEY).any()
     assert not mode.found, "factories without device=: " + ", ".join(
         f"{f}:{n}" for f, n in sorted(mode.found))
 

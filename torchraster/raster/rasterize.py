@@ -800,7 +800,7 @@ def _tile_maxima(keys: torch.Tensor, tile: int
     """
     b, h, w = keys.shape
     rows, cols = -(-h // tile), -(-w // tile)
-    low = depth_key(torch.tensor(float("-inf"))).item()  # below every key
+    low = int(depth_key(torch.tensor(float("-inf"), device=keys.device)))  # below every key
     if rows * tile != h or cols * tile != w:
         keys = torch.nn.functional.pad(keys, (0, cols * tile - w, 0, rows * tile - h),
                                        value=low)
