@@ -17,7 +17,9 @@ Rasterizer scene kinds (cycled):
 For every scene: NaN/Inf in bary, depth of covered pixels, |depth| > 1, interpolated images,
 and the gradients of a random loss backpropagated through interpolate to clip_pos and the
 attributes; rasterize_depth resolved in bands of random heights against one pass (and its
-coverage against rasterize's). Writes section ``stress`` of docs/benchmarks.md with the counts.
+coverage against rasterize's); the depth keys with occlusion culling of back faces forced on
+(however small the scene) against off. Writes section ``stress`` of docs/benchmarks.md with
+the counts.
 
 Renderer scene kinds (cycled), each a ground plane with a sphere resting on it (and a
 zero-area triangle), rendered forward and backward through ``tr.Renderer``:
