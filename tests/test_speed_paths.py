@@ -236,9 +236,9 @@ def test_ragged_pass_equals_block_passes(case: str, monkeypatch) -> None:
 def test_tile_maxima_bound_every_box(shape, tile) -> None:
     """The occlusion test's lookup (rasterize._box_maxima: rasterize._tile_maxima read at a
     box's four corners, at the finest level whose tiles are larger than its side - 1) is
-    exactly the largest
-    depth of the keys in the tiles the box touches, so at least that of the box, for boxes
-    of every side, position and item (brute force); empty pixels read +inf."""
+    exactly the largest depth of the keys in the tiles the box touches, so at least that
+    of the box, for boxes of every side, position and item (brute force); empty pixels
+    read +inf."""
     b, h, w = shape
     gen = torch.Generator().manual_seed(2)
     depth = torch.rand(b, h, w, generator=gen) * 2 - 1
