@@ -227,6 +227,17 @@ def test_soup_culling_matches_reference(cull: bool) -> None:
     _assert_agrees(stats, torch.float32)
 
 
+@pytest.mark.parametrize("res", [(5, 30), (30, 5), (3, 3)])
+def test_thin_frames_match_reference(res: tuple[int, int]) -> None:
+    """Frames narrower than the blocks of small triangles in one direction: the blocks are
+    clamped to the frame per axis (rows to H, columns to W)."""
+    gen = torch.Generator().manual_seed(23)
+    clip, faces, _ = random_soup(gen, 2, 150, weights=(4, 1, 1, 0.3, 1, 1))
+    stats = _engine_vs_reference(clip, faces, res, torch.float32)
+    _assert_agrees(stats, torch.float32)
+    assert stats["covered"] > 5, stats
+
+
 def test_face_ranges_match_reference() -> None:
     gen = torch.Generator().manual_seed(22)
     clip, faces, _ = random_soup(gen, 3, 200, weights=(4, 1, 1, 0.3, 1, 1))

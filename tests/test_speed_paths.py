@@ -267,7 +267,8 @@ def test_tile_maxima_bound_every_box(shape, tile) -> None:
         assert got[k] >= depth[item[k], y0[k]:y1[k] + 1, x0[k]:x1[k] + 1].max()
 
 
-@pytest.mark.parametrize("res,tile", [((37, 45), 16), ((64, 64), 4), ((20, 90), 12), ((9, 9), 16)])
+@pytest.mark.parametrize("res,tile", [((37, 45), 16), ((64, 64), 4), ((20, 90), 12), ((9, 9), 16),
+                                      ((5, 30), 16)])
 def test_tested_boxes_hold_every_binned_centre(res, tile) -> None:
     """binning.tested_boxes (the occlusion test's box per triangle) holds every pixel centre
     that bin_triangles hands to the coverage test, for small and large triangles, blocks

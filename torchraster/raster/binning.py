@@ -298,7 +298,7 @@ def tested_boxes(box: torch.Tensor, resolution: tuple[int, int], tile: int) -> t
     h, w = resolution
     extent = torch.maximum(box[BOX_XMAX] - box[BOX_XMIN], box[BOX_YMAX] - box[BOX_YMIN])
     sizes = torch.tensor(block_sizes(tile), device=box.device)
-    side = sizes[torch.searchsorted(sizes, torch.arange(1, tile + 1, device=box.device))]
+    side = sizes.index_select(0, _shape_table(tile, box.device)[:tile].long())  # by side - 1
     small_extent = extent.clamp(max=tile - 1)  # side - 1 of the box -> the block's side
     kw = side.clamp(max=w).index_select(0, small_extent)
     kh = kw if h == w else side.clamp(max=h).index_select(0, small_extent)

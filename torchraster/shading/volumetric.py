@@ -550,7 +550,8 @@ def light_source(lights: Lights, rays: torch.Tensor, g: float | torch.Tensor,
     lights = lights.expand(b) if lights.batch_size == 1 and b > 1 else lights
     lights = lights.to(device=rays.device, dtype=rays.dtype)
     groups = [_volume_maps(m) for m in shadow_maps]
-    parts = {kind: getattr(lights, kind).select(torch.tensor(ids)) for kind, ids in kinds.items()}
+    parts = {kind: getattr(lights, kind).select(torch.tensor(ids, device=rays.device))
+             for kind, ids in kinds.items()}
 
     def source(p: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         total = torch.zeros_like(p)
